@@ -1,0 +1,3 @@
+//! `cvfarm`: the command-line tool (in progress).
+
+fn main() {}

@@ -1,0 +1,83 @@
+//! Error metrics (DESIGN §6): relMSE with ε = 0.01, MSE, efficiency and speedup.
+//!
+//! relMSE = mean over pixels and channels of (x − ref)² / (ref² + ε). Images are flat slices of
+//! interleaved channels; both must have the same length.
+
+/// The ε of relMSE, so that black reference pixels do not divide by zero.
+pub const REL_MSE_EPSILON: f64 = 0.01;
+
+/// Error statistics of a test image against a reference.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ErrorStats {
+    /// Mean of (x − ref)² / (ref² + ε) over finite entries.
+    pub rel_mse: f64,
+    /// Mean of (x − ref)² over finite entries.
+    pub mse: f64,
+    /// Entries of the test image that are NaN or ±Inf (excluded from the means).
+    pub non_finite: usize,
+}
+
+/// Compares `test` with `reference` (same length, interleaved channels).
+///
+/// Non-finite test values are counted and left out of the means; a non-finite reference value
+/// leaves its entry out too.
+///
+/// # Panics
+/// If the slices differ in length (a caller bug, not bad input: callers check image sizes).
+pub fn compare(test: &[f32], reference: &[f32]) -> ErrorStats {
+    assert_eq!(test.len(), reference.len(), "images must have the same size");
+    let (mut rel, mut sq, mut n, mut non_finite) = (0.0f64, 0.0f64, 0usize, 0usize);
+    for (&x, &r) in test.iter().zip(reference) {
+        if !x.is_finite() {
+            non_finite += 1;
+            continue;
+        }
+        if !r.is_finite() {
+            continue;
+        }
+        let (x, r) = (f64::from(x), f64::from(r));
+        let d2 = (x - r) * (x - r);
+        rel += d2 / (r * r + REL_MSE_EPSILON);
+        sq += d2;
+        n += 1;
+    }
+    let n = n.max(1) as f64;
+    ErrorStats { rel_mse: rel / n, mse: sq / n, non_finite }
+}
+
+/// Efficiency = 1 / (error × time) [Hua §7]; 0 when either is not positive and finite.
+pub fn efficiency(error: f64, seconds: f64) -> f64 {
+    let cost = error * seconds;
+    if cost > 0.0 && cost.is_finite() { 1.0 / cost } else { 0.0 }
+}
+
+/// Speedup of an estimator over a baseline: the ratio of their efficiencies.
+pub fn speedup(error: f64, seconds: f64, base_error: f64, base_seconds: f64) -> f64 {
+    let base = efficiency(base_error, base_seconds);
+    if base > 0.0 { efficiency(error, seconds) / base } else { f64::NAN }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn identical_images_have_zero_error() {
+        let img = [0.1f32, 0.5, 2.0, 0.0];
+        let s = compare(&img, &img);
+        assert_eq!((s.rel_mse, s.mse, s.non_finite), (0.0, 0.0, 0));
+    }
+
+    #[test]
+    fn rel_mse_matches_definition_and_skips_non_finite() {
+        let s = compare(&[1.0, f32::NAN, 0.0], &[0.0, 1.0, 1.0]);
+        let expected = (1.0 / 0.01 + 1.0 / 1.01) / 2.0;
+        assert!((s.rel_mse - expected).abs() < 1e-12);
+        assert_eq!(s.non_finite, 1);
+    }
+
+    #[test]
+    fn halving_error_at_equal_time_is_a_2x_speedup() {
+        assert!((speedup(0.5, 1.0, 1.0, 1.0) - 2.0).abs() < 1e-12);
+    }
+}

@@ -1,0 +1,32 @@
+//! CPU path tracer for cvfarm.
+//!
+//! Data flows one way: a loaded [`scene::Scene`] is prepared once (BVH, lights, materials),
+//! then tiles are rendered into f64 films (and, for CV estimators, per-cell moment
+//! accumulators). The crate does no I/O: files are read by `scene`, written by `imageio`.
+//!
+//! # Layout
+//! - [`math`]: rays and orthonormal frames.
+//! - [`sampler`]: deterministic sampler per (seed, pixel, sample index, dimension).
+//! - [`camera`]: Mitsuba-compatible pinhole camera.
+//! - [`accel`]: obvhs CWBVH over triangles + analytic spheres; `Hit` records.
+//! - [`texture`]: bitmap and checkerboard lookups.
+//! - [`bsdf`]: diffuse, conductor, rough conductor, rough plastic (one file each).
+//! - [`light`]: area lights (meshes, spheres), env map, constant; light selection.
+//! - [`integrator`]: one file per estimator (`path` is the reference integrator).
+//! - [`film`]: per-pixel f64 sums, sums of squares, counts and AOVs.
+//! - [`tile`]: tiles, parallel rendering of an image.
+//! - [`chi2`]: χ² goodness-of-fit harness used by the sampling tests.
+
+#![deny(missing_docs)]
+
+pub mod accel;
+pub mod bsdf;
+pub mod camera;
+pub mod chi2;
+pub mod film;
+pub mod integrator;
+pub mod light;
+pub mod math;
+pub mod sampler;
+pub mod texture;
+pub mod tile;
