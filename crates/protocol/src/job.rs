@@ -1,0 +1,607 @@
+//! Job submission: what a client asks the farm to render.
+//!
+//! A [`JobSpec`] is the body of `POST /v1/jobs`. Unknown fields are rejected everywhere
+//! (`deny_unknown_fields`), so a misspelt option is an error, not a silent default.
+//!
+//! | field | type | default | meaning |
+//! |---|---|---|---|
+//! | `scene` | `{ "inline": SceneDesc }` or `{ "bundle": sha256 }` | — | the scene, inline native JSON or an uploaded scene document by content address |
+//! | `assets` | map name → sha256 | `{}` | asset files the scene names (meshes, textures), uploaded with `PUT /v1/assets/{sha256}` |
+//! | `estimator` | [`EstimatorSpec`] | `{ "kind": "path" }` | which estimator renders the job |
+//! | `spp` | int | 16 | samples per pixel |
+//! | `time_budget_s` | seconds | — | alternative budget (not yet supported) |
+//! | `target_rel_mse` | number | — | alternative budget (not yet supported) |
+//! | `resolution` | `[w, h]` | scene's film | output size override |
+//! | `max_depth` | int | scene's | path-length override (Mitsuba meaning, −1 = unbounded) |
+//! | `seed` | int | 0 | sampler seed: same spec + seed ⇒ same image bits |
+//! | `tile_size` | int | 32 | tile edge in pixels (8..=512) |
+//! | `samples_per_task` | int | `spp` | sample range length per task (splits tiles in time) |
+//! | `priority` | int | 0 | higher runs first; FIFO within a priority |
+//!
+//! ```json
+//! { "scene": { "inline": { "camera": {"fov": 40}, "film": {"width": 32, "height": 32}, "shapes": [] } },
+//!   "estimator": { "kind": "path", "mis": "power" }, "spp": 16, "seed": 7, "tile_size": 16 }
+//! ```
+//!
+//! The task plan ([`plan_tasks`]) is a pure function of the spec: tiles in row-major order,
+//! each split into sample ranges in ascending order. It never depends on the number of workers.
+
+use std::collections::BTreeMap;
+
+use serde::{Deserialize, Serialize};
+
+use crate::hash::is_content_address;
+
+/// The body of `POST /v1/jobs`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct JobSpec {
+    /// The scene to render.
+    pub scene: SceneSource,
+    /// Asset name (as written in the scene) → content address of the uploaded file.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub assets: BTreeMap<String, String>,
+    /// The estimator.
+    #[serde(default)]
+    pub estimator: EstimatorSpec,
+    /// Samples per pixel.
+    #[serde(default = "default_spp")]
+    pub spp: u32,
+    /// Wall-clock budget in seconds (not yet supported: rejected with `unsupported`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub time_budget_s: Option<f64>,
+    /// Keep adding sample batches until the estimated relMSE is below this (not yet supported).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub target_rel_mse: Option<f64>,
+    /// Output resolution `[width, height]`; the scene's film when absent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub resolution: Option<[u32; 2]>,
+    /// Path-length override (segments including the camera ray; −1 = unbounded).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_depth: Option<i32>,
+    /// Sampler seed.
+    #[serde(default)]
+    pub seed: u64,
+    /// Tile edge in pixels.
+    #[serde(default = "default_tile_size")]
+    pub tile_size: u32,
+    /// Samples per task (the sample range of one task); `spp` when absent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub samples_per_task: Option<u32>,
+    /// Scheduling priority: higher first, FIFO within a priority.
+    #[serde(default)]
+    pub priority: i32,
+}
+
+fn default_spp() -> u32 {
+    16
+}
+fn default_tile_size() -> u32 {
+    32
+}
+
+/// Where the scene comes from.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", deny_unknown_fields)]
+pub enum SceneSource {
+    /// The native scene JSON written inline.
+    Inline(Box<scene::SceneDesc>),
+    /// A native scene JSON document uploaded with `PUT /v1/assets/{sha256}`.
+    Bundle(String),
+}
+
+/// The estimator of a job: `{ "kind": NAME, ...options }`.
+///
+/// Only `path` is implemented so far; the other kinds of DESIGN §4 parse (with any options)
+/// so that the coordinator can answer `422 unsupported` naming the estimator, instead of a
+/// confusing "unknown variant".
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum EstimatorSpec {
+    /// Baseline NEE + BSDF MIS path tracer.
+    Path(PathOptions),
+    /// Fan et al. 2006 optimizing control variates (not yet supported).
+    Ocv(OpaqueOptions),
+    /// Hua et al. 2023 controlled mixture sampling (not yet supported).
+    Cms(OpaqueOptions),
+    /// Per-light CV as compared in [Hua §7.2] (not yet supported).
+    PerLightCv(OpaqueOptions),
+    /// Optimal MIS, cells = pixels [Hua §7.4] (not yet supported).
+    OptimalMis(OpaqueOptions),
+    /// Rousselle re-rendering (not yet supported).
+    Rerender(OpaqueOptions),
+    /// Rousselle gradient-domain (not yet supported).
+    Gradient(OpaqueOptions),
+}
+
+impl Default for EstimatorSpec {
+    fn default() -> Self {
+        Self::Path(PathOptions::default())
+    }
+}
+
+impl EstimatorSpec {
+    /// The spec name (`estimator.kind`).
+    pub fn name(&self) -> &'static str {
+        match self {
+            Self::Path(_) => "path",
+            Self::Ocv(_) => "ocv",
+            Self::Cms(_) => "cms",
+            Self::PerLightCv(_) => "per_light_cv",
+            Self::OptimalMis(_) => "optimal_mis",
+            Self::Rerender(_) => "rerender",
+            Self::Gradient(_) => "gradient",
+        }
+    }
+
+    /// Whether the farm can run this estimator yet.
+    pub fn is_supported(&self) -> bool {
+        matches!(self, Self::Path(_))
+    }
+}
+
+/// Options of an estimator that is not implemented yet: kept verbatim.
+pub type OpaqueOptions = serde_json::Map<String, serde_json::Value>;
+
+/// Options of the `path` estimator.
+///
+/// | field | values | default |
+/// |---|---|---|
+/// | `mis` | `power`, `balance` | `power` (as Mitsuba) |
+/// | `light_selection` | `uniform`, `power` | `uniform` |
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PathOptions {
+    /// MIS heuristic combining NEE and BSDF sampling.
+    #[serde(default)]
+    pub mis: MisHeuristic,
+    /// How NEE picks a light.
+    #[serde(default)]
+    pub light_selection: LightSelection,
+}
+
+/// MIS heuristic.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MisHeuristic {
+    /// Power heuristic (β = 2).
+    #[default]
+    Power,
+    /// Balance heuristic.
+    Balance,
+}
+
+/// Light selection for NEE.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LightSelection {
+    /// Uniform over emitters.
+    #[default]
+    Uniform,
+    /// Proportional to emitted power.
+    Power,
+}
+
+/// Server-side limits a spec must respect (explicit, documented, configurable).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Limits {
+    /// Largest image width or height.
+    pub max_dimension: u32,
+    /// Largest pixel count (width × height).
+    pub max_pixels: u64,
+    /// Largest samples per pixel.
+    pub max_spp: u32,
+    /// Largest number of tasks one job may have.
+    pub max_tasks: u64,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Self {
+            max_dimension: 16_384,
+            max_pixels: 64 << 20,
+            max_spp: 1 << 16,
+            max_tasks: 1 << 20,
+        }
+    }
+}
+
+/// Smallest and largest tile edge.
+pub const TILE_SIZE_RANGE: std::ops::RangeInclusive<u32> = 8..=512;
+
+/// A spec that breaks a rule, naming the field.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("{field}: {message}")]
+pub struct SpecError {
+    /// `invalid_spec` or `unsupported`.
+    pub code: &'static str,
+    /// JSON path of the offending field.
+    pub field: String,
+    /// What is wrong.
+    pub message: String,
+}
+
+impl SpecError {
+    fn invalid(field: &str, message: impl Into<String>) -> Self {
+        Self {
+            code: "invalid_spec",
+            field: field.into(),
+            message: message.into(),
+        }
+    }
+    fn unsupported(field: &str, message: impl Into<String>) -> Self {
+        Self {
+            code: "unsupported",
+            field: field.into(),
+            message: message.into(),
+        }
+    }
+}
+
+impl From<SpecError> for crate::ApiError {
+    fn from(e: SpecError) -> Self {
+        crate::ApiError::new(e.code, e.message).with_field(e.field)
+    }
+}
+
+/// The settings a job resolves to once the scene is known (scene defaults + overrides).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ResolvedJob {
+    /// Image width.
+    pub width: u32,
+    /// Image height.
+    pub height: u32,
+    /// Samples per pixel.
+    pub spp: u32,
+    /// Sampler seed.
+    pub seed: u64,
+    /// Path-length limit.
+    pub max_depth: i32,
+    /// Russian-roulette start depth.
+    pub rr_depth: i32,
+    /// Hide directly visible emitters.
+    pub hide_emitters: bool,
+    /// Tile edge.
+    pub tile_size: u32,
+    /// Sample range length per task.
+    pub samples_per_task: u32,
+}
+
+impl JobSpec {
+    /// Checks every field against `limits` and resolves the job against the scene's own
+    /// film and integrator settings. Errors name the field.
+    pub fn resolve(
+        &self,
+        scene: &scene::SceneDesc,
+        limits: &Limits,
+    ) -> Result<ResolvedJob, SpecError> {
+        if !self.estimator.is_supported() {
+            return Err(SpecError::unsupported(
+                "estimator.kind",
+                format!(
+                    "estimator `{}` is not yet supported by this farm (supported: path)",
+                    self.estimator.name()
+                ),
+            ));
+        }
+        if self.time_budget_s.is_some() {
+            return Err(SpecError::unsupported(
+                "time_budget_s",
+                "time budgets are not yet supported; use spp",
+            ));
+        }
+        if self.target_rel_mse.is_some() {
+            return Err(SpecError::unsupported(
+                "target_rel_mse",
+                "target_rel_mse is not yet supported; use spp",
+            ));
+        }
+        for (name, hash) in &self.assets {
+            if !is_content_address(hash) {
+                return Err(SpecError::invalid(
+                    &format!("assets.{name}"),
+                    "asset address must be 64 lower-case hex digits (sha256)",
+                ));
+            }
+        }
+        let [width, height] = self
+            .resolution
+            .unwrap_or([scene.film.width, scene.film.height]);
+        let field = if self.resolution.is_some() {
+            "resolution"
+        } else {
+            "scene.film"
+        };
+        if width == 0 || height == 0 {
+            return Err(SpecError::invalid(
+                field,
+                "width and height must be at least 1",
+            ));
+        }
+        if width > limits.max_dimension || height > limits.max_dimension {
+            return Err(SpecError::invalid(
+                field,
+                format!(
+                    "{width}x{height} exceeds the limit of {} pixels per side",
+                    limits.max_dimension
+                ),
+            ));
+        }
+        if u64::from(width) * u64::from(height) > limits.max_pixels {
+            return Err(SpecError::invalid(
+                field,
+                format!(
+                    "{width}x{height} exceeds the limit of {} pixels",
+                    limits.max_pixels
+                ),
+            ));
+        }
+        if self.spp == 0 || self.spp > limits.max_spp {
+            return Err(SpecError::invalid(
+                "spp",
+                format!("spp must be in 1..={}", limits.max_spp),
+            ));
+        }
+        if !TILE_SIZE_RANGE.contains(&self.tile_size) {
+            return Err(SpecError::invalid(
+                "tile_size",
+                format!(
+                    "tile_size must be in {}..={}",
+                    TILE_SIZE_RANGE.start(),
+                    TILE_SIZE_RANGE.end()
+                ),
+            ));
+        }
+        let samples_per_task = self.samples_per_task.unwrap_or(self.spp);
+        if samples_per_task == 0 || samples_per_task > self.spp {
+            return Err(SpecError::invalid(
+                "samples_per_task",
+                "samples_per_task must be in 1..=spp",
+            ));
+        }
+        let max_depth = self.max_depth.unwrap_or(scene.integrator.max_depth);
+        if max_depth < -1 || max_depth == 0 {
+            return Err(SpecError::invalid(
+                "max_depth",
+                "max_depth must be -1 (unbounded) or at least 1",
+            ));
+        }
+        let resolved = ResolvedJob {
+            width,
+            height,
+            spp: self.spp,
+            seed: self.seed,
+            max_depth,
+            rr_depth: scene.integrator.rr_depth,
+            hide_emitters: scene.integrator.hide_emitters,
+            tile_size: self.tile_size,
+            samples_per_task,
+        };
+        if resolved.task_count() > limits.max_tasks {
+            return Err(SpecError::invalid(
+                "tile_size",
+                format!(
+                    "the job would have {} tasks, more than the limit of {}",
+                    resolved.task_count(),
+                    limits.max_tasks
+                ),
+            ));
+        }
+        Ok(resolved)
+    }
+}
+
+/// A rectangle of pixels: columns `x0..x0+width`, rows `y0..y0+height` (row 0 at the top).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TileRect {
+    /// First column.
+    pub x0: u32,
+    /// First row.
+    pub y0: u32,
+    /// Columns.
+    pub width: u32,
+    /// Rows.
+    pub height: u32,
+}
+
+impl TileRect {
+    /// Number of pixels.
+    pub fn pixel_count(&self) -> usize {
+        self.width as usize * self.height as usize
+    }
+
+    /// Whether the rectangle lies inside a `w`×`h` image (and is not empty).
+    pub fn fits_in(&self, w: u32, h: u32) -> bool {
+        self.width > 0
+            && self.height > 0
+            && u64::from(self.x0) + u64::from(self.width) <= u64::from(w)
+            && u64::from(self.y0) + u64::from(self.height) <= u64::from(h)
+    }
+}
+
+/// One task of a job's phase: a tile and a sample range. `seq` is the canonical order.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TaskPlan {
+    /// Position in canonical order (0-based, dense).
+    pub seq: u32,
+    /// Pixels.
+    pub rect: TileRect,
+    /// First sample index (inclusive).
+    pub sample_start: u32,
+    /// Last sample index (exclusive).
+    pub sample_end: u32,
+}
+
+impl ResolvedJob {
+    fn tiles(&self) -> (u32, u32) {
+        (
+            self.width.div_ceil(self.tile_size),
+            self.height.div_ceil(self.tile_size),
+        )
+    }
+
+    fn ranges(&self) -> u32 {
+        self.spp.div_ceil(self.samples_per_task)
+    }
+
+    /// Number of tasks [`plan_tasks`] produces.
+    pub fn task_count(&self) -> u64 {
+        let (tx, ty) = self.tiles();
+        u64::from(tx) * u64::from(ty) * u64::from(self.ranges())
+    }
+}
+
+/// The canonical decomposition of a render phase: tiles in row-major order, each tile's
+/// sample ranges ascending. A pure function of the resolved job.
+pub fn plan_tasks(job: &ResolvedJob) -> Vec<TaskPlan> {
+    let (tx, ty) = job.tiles();
+    let mut out = Vec::with_capacity(usize::try_from(job.task_count()).unwrap_or(0));
+    let mut seq = 0u32;
+    for j in 0..ty {
+        for i in 0..tx {
+            let x0 = i * job.tile_size;
+            let y0 = j * job.tile_size;
+            let rect = TileRect {
+                x0,
+                y0,
+                width: job.tile_size.min(job.width - x0),
+                height: job.tile_size.min(job.height - y0),
+            };
+            let mut s = 0;
+            while s < job.spp {
+                let e = (s + job.samples_per_task).min(job.spp);
+                out.push(TaskPlan {
+                    seq,
+                    rect,
+                    sample_start: s,
+                    sample_end: e,
+                });
+                seq += 1;
+                s = e;
+            }
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scene_json() -> serde_json::Value {
+        serde_json::json!({ "camera": {"fov": 40.0}, "film": {"width": 40, "height": 24}, "shapes": [] })
+    }
+
+    fn spec(extra: serde_json::Value) -> Result<JobSpec, serde_json::Error> {
+        let mut v = serde_json::json!({ "scene": { "inline": scene_json() } });
+        for (k, x) in extra.as_object().unwrap() {
+            v[k] = x.clone();
+        }
+        serde_json::from_value(v)
+    }
+
+    fn scene() -> scene::SceneDesc {
+        serde_json::from_value(scene_json()).unwrap()
+    }
+
+    #[test]
+    fn defaults_and_resolution() {
+        let s = spec(serde_json::json!({})).unwrap();
+        assert_eq!(s.estimator, EstimatorSpec::Path(PathOptions::default()));
+        let r = s.resolve(&scene(), &Limits::default()).unwrap();
+        assert_eq!(
+            (r.width, r.height, r.spp, r.samples_per_task, r.max_depth),
+            (40, 24, 16, 16, 5)
+        );
+    }
+
+    #[test]
+    fn unknown_option_rejected() {
+        let e = spec(serde_json::json!({"estimator": {"kind": "path", "bogus": 1}})).unwrap_err();
+        assert!(e.to_string().contains("bogus"), "{e}");
+        let e = spec(serde_json::json!({"sppp": 4})).unwrap_err();
+        assert!(e.to_string().contains("sppp"), "{e}");
+    }
+
+    #[test]
+    fn unknown_estimator_rejected_at_parse() {
+        let e = spec(serde_json::json!({"estimator": {"kind": "magic"}})).unwrap_err();
+        assert!(e.to_string().contains("magic"), "{e}");
+    }
+
+    #[test]
+    fn known_but_unimplemented_estimator_is_unsupported() {
+        let s = spec(serde_json::json!({"estimator": {"kind": "cms", "train_spp": 16}})).unwrap();
+        let e = s.resolve(&scene(), &Limits::default()).unwrap_err();
+        assert_eq!(e.code, "unsupported");
+        assert_eq!(e.field, "estimator.kind");
+        assert!(e.message.contains("cms"));
+    }
+
+    #[test]
+    fn limits_name_the_field() {
+        let l = Limits::default();
+        let e = spec(serde_json::json!({"spp": 0}))
+            .unwrap()
+            .resolve(&scene(), &l)
+            .unwrap_err();
+        assert_eq!(e.field, "spp");
+        let e = spec(serde_json::json!({"spp": 1 << 20}))
+            .unwrap()
+            .resolve(&scene(), &l)
+            .unwrap_err();
+        assert_eq!(e.field, "spp");
+        let e = spec(serde_json::json!({"resolution": [100000, 2]}))
+            .unwrap()
+            .resolve(&scene(), &l)
+            .unwrap_err();
+        assert_eq!(e.field, "resolution");
+        let e = spec(serde_json::json!({"tile_size": 3}))
+            .unwrap()
+            .resolve(&scene(), &l)
+            .unwrap_err();
+        assert_eq!(e.field, "tile_size");
+        let e = spec(serde_json::json!({"samples_per_task": 17}))
+            .unwrap()
+            .resolve(&scene(), &l)
+            .unwrap_err();
+        assert_eq!(e.field, "samples_per_task");
+        let e = spec(serde_json::json!({"max_depth": 0}))
+            .unwrap()
+            .resolve(&scene(), &l)
+            .unwrap_err();
+        assert_eq!(e.field, "max_depth");
+        let e = spec(serde_json::json!({"assets": {"a.obj": "xyz"}}))
+            .unwrap()
+            .resolve(&scene(), &l)
+            .unwrap_err();
+        assert_eq!(e.field, "assets.a.obj");
+    }
+
+    #[test]
+    fn plan_covers_every_pixel_sample_once_in_canonical_order() {
+        let s =
+            spec(serde_json::json!({"tile_size": 16, "spp": 10, "samples_per_task": 4})).unwrap();
+        let r = s.resolve(&scene(), &Limits::default()).unwrap();
+        let plan = plan_tasks(&r);
+        assert_eq!(plan.len() as u64, r.task_count());
+        assert_eq!(plan.len(), 3 * 2 * 3);
+        let mut hits = vec![0u32; 40 * 24];
+        for (i, t) in plan.iter().enumerate() {
+            assert_eq!(t.seq as usize, i);
+            assert!(t.rect.fits_in(40, 24));
+            for y in t.rect.y0..t.rect.y0 + t.rect.height {
+                for x in t.rect.x0..t.rect.x0 + t.rect.width {
+                    hits[(y * 40 + x) as usize] += t.sample_end - t.sample_start;
+                }
+            }
+        }
+        assert!(hits.iter().all(|&h| h == 10));
+        // Sample ranges of one tile are consecutive and ascending.
+        assert_eq!((plan[0].sample_start, plan[0].sample_end), (0, 4));
+        assert_eq!((plan[2].sample_start, plan[2].sample_end), (8, 10));
+        assert_eq!(plan[3].rect.x0, 16);
+    }
+}
