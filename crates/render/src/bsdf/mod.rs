@@ -10,11 +10,24 @@
 //! - One-sided: zero unless `wo.z > 0` and `wi.z > 0`. `two_sided` mirrors `wo` (and so `wi`)
 //!   into the upper hemisphere first.
 //!
+//! Per-lobe parameter tables and formulas are in each lobe's module docs. Scene materials become
+//! [`Bsdf`] values through a [`MaterialTable`] (built once per scene; per hit it only evaluates
+//! textures, no allocation).
+//!
 //! # Layout
 //! `diffuse.rs`, `conductor.rs` (smooth), `rough_conductor.rs`, `rough_plastic.rs` (Mitsuba's
 //! layered model), `microfacet.rs` (GGX/Beckmann D, G, VNDF sampling), `fresnel.rs`.
 
+pub mod conductor;
+pub mod diffuse;
+pub mod fresnel;
+pub mod microfacet;
+pub mod rough_conductor;
+pub mod rough_plastic;
+
 use glam::{Vec2, Vec3};
+use microfacet::Microfacet;
+pub use rough_plastic::RoughPlasticParams;
 
 /// One sampled direction.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -30,6 +43,10 @@ pub struct BsdfSample {
 }
 
 /// The closed set of BSDF kinds, with textures already evaluated at the hit point.
+///
+/// `RoughPlastic` carries its 64-entry transmittance table inline (≈ 300 bytes) so that a
+/// `Bsdf` stays `Copy` and needs no allocation or lifetime; copying it per hit is cheap.
+#[allow(clippy::large_enum_variant)]
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum BsdfKind {
     /// Lambertian with this albedo.
@@ -59,20 +76,16 @@ pub enum BsdfKind {
         /// Multiplier.
         specular_reflectance: Vec3,
     },
-    /// Mitsuba's `roughplastic` layered model.
+    /// Mitsuba's `roughplastic` layered model. Distribution, α, η, `nonlinear` and the
+    /// precomputed tables are in `params` (build them with [`RoughPlasticParams::new`], once
+    /// per material: [`MaterialTable`] does).
     RoughPlastic {
-        /// Distribution.
-        distribution: scene::Distribution,
-        /// α (not squared).
-        alpha: f32,
-        /// Relative IOR.
-        eta: f32,
+        /// Distribution, α, η, `nonlinear`, sampling weight and transmittance tables.
+        params: RoughPlasticParams,
         /// Diffuse base albedo.
         diffuse_reflectance: Vec3,
         /// Specular multiplier.
         specular_reflectance: Vec3,
-        /// Mitsuba's `nonlinear`.
-        nonlinear: bool,
     },
 }
 
@@ -83,4 +96,313 @@ pub struct Bsdf {
     pub kind: BsdfKind,
     /// Whether the back side reflects like the front.
     pub two_sided: bool,
+}
+
+impl Bsdf {
+    /// A one-sided BSDF of this kind.
+    #[inline]
+    pub fn new(kind: BsdfKind) -> Self {
+        Self {
+            kind,
+            two_sided: false,
+        }
+    }
+
+    /// Apply the sidedness rule: a two-sided BSDF mirrors both directions through the tangent
+    /// plane when `wo` is below it (as Mitsuba's `twosided` does). Returns the directions to
+    /// hand to the lobe and whether they were flipped.
+    #[inline]
+    fn orient(&self, wo: Vec3, wi: Vec3) -> (Vec3, Vec3, bool) {
+        if self.two_sided && wo.z < 0.0 {
+            (
+                Vec3::new(wo.x, wo.y, -wo.z),
+                Vec3::new(wi.x, wi.y, -wi.z),
+                true,
+            )
+        } else {
+            (wo, wi, false)
+        }
+    }
+
+    /// f(wo, wi)·|cos θi|, RGB. Zero if the sidedness rule excludes the pair.
+    #[inline]
+    pub fn eval(&self, wo: Vec3, wi: Vec3) -> Vec3 {
+        let (wo, wi, _) = self.orient(wo, wi);
+        match &self.kind {
+            BsdfKind::Diffuse { reflectance } => diffuse::eval(*reflectance, wo, wi),
+            BsdfKind::Conductor { .. } => Vec3::ZERO,
+            BsdfKind::RoughConductor {
+                distribution,
+                alpha,
+                eta,
+                k,
+                specular_reflectance,
+            } => {
+                let mf = Microfacet::new(*distribution, *alpha);
+                rough_conductor::eval(&mf, *eta, *k, *specular_reflectance, wo, wi)
+            }
+            BsdfKind::RoughPlastic {
+                params,
+                diffuse_reflectance,
+                specular_reflectance,
+            } => rough_plastic::eval(params, *diffuse_reflectance, *specular_reflectance, wo, wi),
+        }
+    }
+
+    /// Solid-angle density of `sample` producing `wi` (0 for delta lobes).
+    #[inline]
+    pub fn pdf(&self, wo: Vec3, wi: Vec3) -> f32 {
+        let (wo, wi, _) = self.orient(wo, wi);
+        match &self.kind {
+            BsdfKind::Diffuse { .. } => diffuse::pdf(wo, wi),
+            BsdfKind::Conductor { .. } => 0.0,
+            BsdfKind::RoughConductor {
+                distribution,
+                alpha,
+                ..
+            } => rough_conductor::pdf(&Microfacet::new(*distribution, *alpha), wo, wi),
+            BsdfKind::RoughPlastic { params, .. } => rough_plastic::pdf(params, wo, wi),
+        }
+    }
+
+    /// Sample `wi` given `wo`; `u_lobe` picks the lobe, `u` the direction within it (both uniform
+    /// in [0, 1)). `None` for a failed sample (wrong side, direction below the surface, pdf 0).
+    #[inline]
+    pub fn sample(&self, wo: Vec3, u_lobe: f32, u: Vec2) -> Option<BsdfSample> {
+        let (wo, _, flipped) = self.orient(wo, Vec3::Z);
+        let mut s = match &self.kind {
+            BsdfKind::Diffuse { reflectance } => diffuse::sample(*reflectance, wo, u),
+            BsdfKind::Conductor {
+                eta,
+                k,
+                specular_reflectance,
+            } => conductor::sample(*eta, *k, *specular_reflectance, wo),
+            BsdfKind::RoughConductor {
+                distribution,
+                alpha,
+                eta,
+                k,
+                specular_reflectance,
+            } => {
+                let mf = Microfacet::new(*distribution, *alpha);
+                rough_conductor::sample(&mf, *eta, *k, *specular_reflectance, wo, u)
+            }
+            BsdfKind::RoughPlastic {
+                params,
+                diffuse_reflectance,
+                specular_reflectance,
+            } => rough_plastic::sample(
+                params,
+                *diffuse_reflectance,
+                *specular_reflectance,
+                wo,
+                u_lobe,
+                u,
+            ),
+        }?;
+        if !(s.weight.is_finite() && s.pdf.is_finite() && s.pdf > 0.0) {
+            return None;
+        }
+        if flipped {
+            s.wi.z = -s.wi.z;
+        }
+        Some(s)
+    }
+
+    /// Whether every lobe is a Dirac delta (no MIS with light sampling possible).
+    #[inline]
+    pub fn is_delta(&self) -> bool {
+        matches!(self.kind, BsdfKind::Conductor { .. })
+    }
+
+    /// Albedo AOV for the denoiser: the diffuse reflectance (diffuse, rough plastic base) or the
+    /// specular reflectance multiplier (conductors).
+    #[inline]
+    pub fn albedo(&self) -> Vec3 {
+        match &self.kind {
+            BsdfKind::Diffuse { reflectance } => *reflectance,
+            BsdfKind::Conductor {
+                specular_reflectance,
+                ..
+            }
+            | BsdfKind::RoughConductor {
+                specular_reflectance,
+                ..
+            } => *specular_reflectance,
+            BsdfKind::RoughPlastic {
+                diffuse_reflectance,
+                ..
+            } => *diffuse_reflectance,
+        }
+    }
+}
+
+/// One material, with colours still unevaluated and per-material precomputations done.
+#[derive(Clone, Debug)]
+enum Entry {
+    Diffuse {
+        reflectance: scene::Color,
+    },
+    Conductor {
+        eta: Vec3,
+        k: Vec3,
+        specular_reflectance: scene::Color,
+    },
+    RoughConductor {
+        distribution: scene::Distribution,
+        alpha: f32,
+        eta: Vec3,
+        k: Vec3,
+        specular_reflectance: scene::Color,
+    },
+    RoughPlastic {
+        params: Box<RoughPlasticParams>,
+        diffuse_reflectance: scene::Color,
+        specular_reflectance: scene::Color,
+    },
+}
+
+/// The scene's materials, ready to produce a [`Bsdf`] per hit.
+///
+/// Built once per scene ([`MaterialTable::new`] precomputes, e.g., rough plastic tables, about
+/// 1 M microfacet evaluations per rough plastic material); [`MaterialTable::bsdf`] then only
+/// evaluates textures.
+#[derive(Clone, Debug)]
+pub struct MaterialTable {
+    entries: Vec<(Entry, bool)>,
+    textures: Vec<scene::Texture>,
+}
+
+impl MaterialTable {
+    /// Prepare `materials` (indexed by [`scene::MaterialId`]) whose colours refer to `textures`.
+    pub fn new(materials: &[scene::Material], textures: &[scene::Texture]) -> Self {
+        let entries = materials
+            .iter()
+            .map(|m| Self::entry(m, textures, false))
+            .collect();
+        Self {
+            entries,
+            textures: textures.to_vec(),
+        }
+    }
+
+    fn entry(m: &scene::Material, textures: &[scene::Texture], two_sided: bool) -> (Entry, bool) {
+        use scene::Material as M;
+        let e = match m {
+            M::Diffuse { reflectance } => Entry::Diffuse {
+                reflectance: *reflectance,
+            },
+            M::Conductor {
+                eta,
+                k,
+                specular_reflectance,
+            } => Entry::Conductor {
+                eta: *eta,
+                k: *k,
+                specular_reflectance: *specular_reflectance,
+            },
+            M::RoughConductor {
+                distribution,
+                alpha,
+                eta,
+                k,
+                specular_reflectance,
+            } => Entry::RoughConductor {
+                distribution: *distribution,
+                alpha: *alpha,
+                eta: *eta,
+                k: *k,
+                specular_reflectance: *specular_reflectance,
+            },
+            M::RoughPlastic {
+                distribution,
+                alpha,
+                eta,
+                diffuse_reflectance,
+                specular_reflectance,
+                nonlinear,
+            } => {
+                let d_mean = crate::texture::mean_color(diffuse_reflectance, textures);
+                let s_mean = crate::texture::mean_color(specular_reflectance, textures);
+                let params = RoughPlasticParams::new(
+                    *distribution,
+                    *alpha,
+                    *eta,
+                    d_mean,
+                    s_mean,
+                    *nonlinear,
+                );
+                Entry::RoughPlastic {
+                    params: Box::new(params),
+                    diffuse_reflectance: *diffuse_reflectance,
+                    specular_reflectance: *specular_reflectance,
+                }
+            }
+            M::TwoSided(inner) => return Self::entry(inner, textures, true),
+        };
+        (e, two_sided)
+    }
+
+    /// Number of materials.
+    pub fn len(&self) -> usize {
+        self.entries.len()
+    }
+
+    /// Whether there are no materials.
+    pub fn is_empty(&self) -> bool {
+        self.entries.is_empty()
+    }
+
+    /// The BSDF of material `id` at texture coordinates `uv`. An out-of-range id (which a
+    /// validated scene never contains) gives Mitsuba's default material, grey diffuse 0.5.
+    #[inline]
+    pub fn bsdf(&self, id: scene::MaterialId, uv: Vec2) -> Bsdf {
+        let Some((entry, two_sided)) = self.entries.get(id as usize) else {
+            debug_assert!(false, "material id {id} out of range");
+            return Bsdf::new(BsdfKind::Diffuse {
+                reflectance: Vec3::splat(0.5),
+            });
+        };
+        let tex = |c: &scene::Color| crate::texture::eval_color(c, &self.textures, uv);
+        let kind = match entry {
+            Entry::Diffuse { reflectance } => BsdfKind::Diffuse {
+                reflectance: tex(reflectance),
+            },
+            Entry::Conductor {
+                eta,
+                k,
+                specular_reflectance,
+            } => BsdfKind::Conductor {
+                eta: *eta,
+                k: *k,
+                specular_reflectance: tex(specular_reflectance),
+            },
+            Entry::RoughConductor {
+                distribution,
+                alpha,
+                eta,
+                k,
+                specular_reflectance,
+            } => BsdfKind::RoughConductor {
+                distribution: *distribution,
+                alpha: *alpha,
+                eta: *eta,
+                k: *k,
+                specular_reflectance: tex(specular_reflectance),
+            },
+            Entry::RoughPlastic {
+                params,
+                diffuse_reflectance,
+                specular_reflectance,
+            } => BsdfKind::RoughPlastic {
+                params: **params,
+                diffuse_reflectance: tex(diffuse_reflectance),
+                specular_reflectance: tex(specular_reflectance),
+            },
+        };
+        Bsdf {
+            kind,
+            two_sided: *two_sided,
+        }
+    }
 }
