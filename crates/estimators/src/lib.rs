@@ -4,10 +4,19 @@
 //! one implementation.
 //!
 //! # Layout
-//! - [`mis`]: balance/power heuristic weights, effective mixture density [Hua eq. 16].
+//! - [`mis`]: balance/power heuristic weights, effective mixture density [Hua eq. 16],
+//!   deterministic mixture sample counts [Fan §4].
+//! - [`cell`]: per-cell accumulators of the CV normal equations [Hua eq. 21, 23, 25, 29],
+//!   merge and versioned binary encoding.
+//! - [`solve`]: dense and Schur-complement solvers [Hua eq. 32–33], the policy for hard
+//!   cells, coefficients and their application to samples.
 //! - [`metrics`]: relMSE, MSE, efficiency and speedup (DESIGN §6).
 
 #![deny(missing_docs)]
+// `!(x > 0.0)` is deliberate throughout: a NaN must fail every validity check.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
 
+pub mod cell;
 pub mod metrics;
 pub mod mis;
+pub mod solve;

@@ -25,7 +25,11 @@ pub struct ErrorStats {
 /// # Panics
 /// If the slices differ in length (a caller bug, not bad input: callers check image sizes).
 pub fn compare(test: &[f32], reference: &[f32]) -> ErrorStats {
-    assert_eq!(test.len(), reference.len(), "images must have the same size");
+    assert_eq!(
+        test.len(),
+        reference.len(),
+        "images must have the same size"
+    );
     let (mut rel, mut sq, mut n, mut non_finite) = (0.0f64, 0.0f64, 0usize, 0usize);
     for (&x, &r) in test.iter().zip(reference) {
         if !x.is_finite() {
@@ -42,19 +46,31 @@ pub fn compare(test: &[f32], reference: &[f32]) -> ErrorStats {
         n += 1;
     }
     let n = n.max(1) as f64;
-    ErrorStats { rel_mse: rel / n, mse: sq / n, non_finite }
+    ErrorStats {
+        rel_mse: rel / n,
+        mse: sq / n,
+        non_finite,
+    }
 }
 
 /// Efficiency = 1 / (error × time) [Hua §7]; 0 when either is not positive and finite.
 pub fn efficiency(error: f64, seconds: f64) -> f64 {
     let cost = error * seconds;
-    if cost > 0.0 && cost.is_finite() { 1.0 / cost } else { 0.0 }
+    if cost > 0.0 && cost.is_finite() {
+        1.0 / cost
+    } else {
+        0.0
+    }
 }
 
 /// Speedup of an estimator over a baseline: the ratio of their efficiencies.
 pub fn speedup(error: f64, seconds: f64, base_error: f64, base_seconds: f64) -> f64 {
     let base = efficiency(base_error, base_seconds);
-    if base > 0.0 { efficiency(error, seconds) / base } else { f64::NAN }
+    if base > 0.0 {
+        efficiency(error, seconds) / base
+    } else {
+        f64::NAN
+    }
 }
 
 #[cfg(test)]

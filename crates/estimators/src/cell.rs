@@ -1,0 +1,774 @@
+//! Per-cell accumulators of the CV normal equations [Hua eq. 21, 23, 25, 29].
+//!
+//! A spatial cell collects, over every training sample that lands in it, the sums of the
+//! weighted least-squares system whose solution are the CV coefficients `α`:
+//!
+//! ```text
+//! A_kl = Σ w λ_k λ_l / p²        b_k = Σ w F λ_k / p        (F = f / p)
+//! ```
+//!
+//! [Hua eq. 21] for one integral, summed over all integrals of the cell [Hua eq. 23], with
+//! the sample weight `w` = squared prefix throughput [Hua eq. 29], divided by
+//! `(surrogate + 0.01)²` when optimising relative variance [Hua eq. 25]
+//! (see [`training_weight`]).
+//!
+//! # Contracts
+//! - `p` is the effective mixture density of the vertex [Hua eq. 16] and every `λ_k` is a
+//!   normalised mixture of sampling pdfs [Hua eq. 18], **all in the same measure** as `p`.
+//!   Only the ratios `λ_k / p` enter the sums, so the measure itself does not matter.
+//! - `F` is the sample's balance-heuristic value `f/p` per RGB channel. With
+//!   [`ColorMode::Mono`] the channels are averaged before accumulation [Hua §4.3].
+//! - Components come in two kinds ([`ComponentLayout`]): `P` **partitioned** components
+//!   (one per light or light cluster, the env map) whose pdfs never overlap, so a sample has
+//!   a nonzero `λ_k` for at most one of them, and `K` **overlapping** components (BSDF,
+//!   guiding lobes). The matrix `A` is therefore stored sparsely: the diagonal of the
+//!   partition block, the `P × K` cross block and the small dense `K × K` block; partitions
+//!   are stored only once sampled, in a list sorted by index.
+//! - Accumulation is in `f64` whatever the caller's precision. A sample with a NaN/Inf
+//!   anywhere, a non-positive pdf or an out-of-range index is **rejected and counted**
+//!   ([`CellAccumulator::rejected`]) and leaves every sum untouched.
+//! - [`CellAccumulator::merge`] is a plain element-wise `f64` addition (commutative, and
+//!   associative up to rounding): merging a fixed list of accumulators in a canonical
+//!   order always gives bitwise-identical sums, whatever the number of workers.
+//! - [`CellAccumulator::encode`] / [`CellAccumulator::decode`] round-trip bit-exactly;
+//!   decoding validates sizes, ordering and finiteness and never panics.
+//!
+//! # Hot loop
+//! [`CellAccumulator::add`] allocates only the first time a partition is seen in the
+//! cell; it touches the dense block, the overlapping right-hand sides and the one sampled
+//! partition's entry (found by binary search, with a one-entry cache for runs of samples
+//! from the same light).
+
+use thiserror::Error;
+
+/// Number of colour channels of sample values.
+pub const CHANNELS: usize = 3;
+
+/// Largest supported number of overlapping components `K` (the dense block is `K × K`).
+pub const MAX_OVERLAPPING: u32 = 64;
+
+/// The ε of relative-variance training weights [Hua eq. 25]: `w = t² / (s + ε)²`.
+pub const SURROGATE_EPSILON: f64 = 0.01;
+
+/// Training weight of a sample [Hua eq. 25, 29].
+///
+/// `throughput` is the (scalar, e.g. channel-mean) prefix path throughput `g(x)/p(x)` up to
+/// the vertex; `surrogate` is the surrogate pixel value (e.g. luminance of a denoised
+/// first-pass image) when optimising relative variance. A negative or non-finite surrogate
+/// is treated as zero, so the weight stays finite.
+#[inline]
+pub fn training_weight(throughput: f64, surrogate: Option<f64>) -> f64 {
+    let t2 = throughput * throughput;
+    match surrogate {
+        None => t2,
+        Some(s) => {
+            let s = if s.is_finite() && s > 0.0 { s } else { 0.0 };
+            t2 / ((s + SURROGATE_EPSILON) * (s + SURROGATE_EPSILON))
+        }
+    }
+}
+
+/// Number and kinds of CV components of a cell.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct ComponentLayout {
+    /// Partitioned (non-overlapping) components `P`: one per light/cluster, env map.
+    pub partitions: u32,
+    /// Overlapping components `K`: BSDF, guiding lobes (at most [`MAX_OVERLAPPING`]).
+    pub overlapping: u32,
+}
+
+impl ComponentLayout {
+    /// A layout, checking `overlapping <= MAX_OVERLAPPING`.
+    pub fn new(partitions: u32, overlapping: u32) -> Result<Self, CellError> {
+        if overlapping > MAX_OVERLAPPING {
+            return Err(CellError::TooManyOverlapping(overlapping));
+        }
+        Ok(Self {
+            partitions,
+            overlapping,
+        })
+    }
+
+    /// Total number of components `P + K`.
+    pub fn components(&self) -> usize {
+        self.partitions as usize + self.overlapping as usize
+    }
+}
+
+/// Whether coefficients are fitted per RGB channel or once for the channel mean [Hua §4.3].
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum ColorMode {
+    /// One coefficient per channel (`b` has three columns).
+    Rgb,
+    /// One coefficient shared by all channels (`b` is fitted to the channel mean).
+    Mono,
+}
+
+impl ColorMode {
+    /// Number of right-hand-side columns: 3 or 1.
+    pub fn channels(self) -> usize {
+        match self {
+            ColorMode::Rgb => CHANNELS,
+            ColorMode::Mono => 1,
+        }
+    }
+}
+
+/// The CV components of one sample: its mixture density and component densities.
+///
+/// All densities in the same measure (see the module contract).
+#[derive(Clone, Copy, Debug)]
+pub struct CvSample<'a> {
+    /// Effective mixture density `p(x)` [Hua eq. 16]; must be positive and finite.
+    pub pdf: f64,
+    /// The partitioned component whose `λ_k(x)` may be nonzero, with that value
+    /// (`None` when the sample lies in no partition, e.g. a BSDF sample that escaped with
+    /// no env map).
+    pub partition: Option<(u32, f64)>,
+    /// `λ_j(x)` of the `K` overlapping components, in layout order.
+    pub overlapping: &'a [f64],
+}
+
+/// Why a sample was not accumulated (it is counted in [`CellAccumulator::rejected`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Error)]
+pub enum SampleRejection {
+    /// A value, weight or density is NaN/±Inf, or a product would overflow.
+    #[error("non-finite sample")]
+    NonFinite,
+    /// The mixture density is zero or negative.
+    #[error("non-positive mixture density")]
+    NonPositivePdf,
+    /// The weight is negative.
+    #[error("negative sample weight")]
+    NegativeWeight,
+    /// The partition index is not below the layout's `P`.
+    #[error("partition index out of range")]
+    PartitionOutOfRange,
+    /// The overlapping slice does not have `K` entries.
+    #[error("wrong number of overlapping components")]
+    WrongComponentCount,
+}
+
+/// Errors of layouts, merges and decoding.
+#[derive(Clone, Debug, PartialEq, Eq, Error)]
+pub enum CellError {
+    /// More overlapping components than [`MAX_OVERLAPPING`].
+    #[error("{0} overlapping components (max {MAX_OVERLAPPING})")]
+    TooManyOverlapping(u32),
+    /// Merging accumulators of different layouts or colour modes.
+    #[error("cannot merge accumulators of different layouts or colour modes")]
+    LayoutMismatch,
+    /// The bytes end before the structure does.
+    #[error("truncated accumulator: needed {needed} bytes at offset {offset}")]
+    Truncated {
+        /// Offset at which more bytes were needed.
+        offset: usize,
+        /// Bytes needed there.
+        needed: usize,
+    },
+    /// The bytes do not start with the accumulator magic.
+    #[error("not an accumulator (bad magic)")]
+    BadMagic,
+    /// An encoding version this build does not read.
+    #[error("unsupported accumulator version {0}")]
+    UnsupportedVersion(u16),
+    /// Unknown colour-mode tag or non-zero reserved byte.
+    #[error("bad header field")]
+    BadHeader,
+    /// A NaN/Inf or an impossible negative value in the payload.
+    #[error("invalid value at offset {0}")]
+    InvalidValue(usize),
+    /// Partition entries not strictly increasing, out of range, or with zero count.
+    #[error("invalid partition entry at offset {0}")]
+    BadPartition(usize),
+    /// More partition entries than the layout or the payload can hold.
+    #[error("partition entry count {0} impossible")]
+    BadEntryCount(u64),
+    /// Bytes left after the structure.
+    #[error("{0} trailing bytes")]
+    Trailing(usize),
+}
+
+/// Moments of one sampled partition (a view into a [`CellAccumulator`]).
+#[derive(Clone, Copy, Debug)]
+pub struct PartitionMoments<'a> {
+    /// Partition index `k < P`.
+    pub id: u32,
+    /// Number of accepted samples with `λ_k ≠ 0`.
+    pub count: u64,
+    /// `A_kk = Σ w (λ_k/p)²`.
+    pub diag: f64,
+    /// `A_{k,P+j} = Σ w (λ_k/p)(λ_j/p)` for the `K` overlapping components.
+    pub cross: &'a [f64],
+    /// `b_k = Σ w F (λ_k/p)` per channel of the colour mode.
+    pub b: &'a [f64],
+}
+
+/// Normal-equation sums of one spatial cell.
+///
+/// Equality compares the sums and counters (not the hot-loop cache).
+#[derive(Clone, Debug)]
+pub struct CellAccumulator {
+    layout: ComponentLayout,
+    color: ColorMode,
+    samples: u64,
+    rejected: u64,
+    weight_sum: f64,
+    weight_sq_sum: f64,
+    /// Packed upper triangle (row-major, `j >= i`) of the `K × K` overlapping block.
+    dense: Vec<f64>,
+    /// `K × C` right-hand sides of the overlapping components.
+    b_overlap: Vec<f64>,
+    /// Sampled partition indices, strictly increasing.
+    part_ids: Vec<u32>,
+    part_counts: Vec<u64>,
+    /// Per entry: `[diag, cross_0..K, b_0..C]`.
+    part_data: Vec<f64>,
+    /// Slot of the most recently used partition (hot-loop cache; not part of equality).
+    last_slot: usize,
+}
+
+#[inline]
+fn row_start(k: usize, i: usize) -> usize {
+    // Σ_{r<i} (k - r) = i k - i (i - 1) / 2
+    i * k - i * i.saturating_sub(1) / 2
+}
+
+impl PartialEq for CellAccumulator {
+    fn eq(&self, o: &Self) -> bool {
+        self.layout == o.layout
+            && self.color == o.color
+            && self.samples == o.samples
+            && self.rejected == o.rejected
+            && self.weight_sum == o.weight_sum
+            && self.weight_sq_sum == o.weight_sq_sum
+            && self.dense == o.dense
+            && self.b_overlap == o.b_overlap
+            && self.part_ids == o.part_ids
+            && self.part_counts == o.part_counts
+            && self.part_data == o.part_data
+    }
+}
+
+impl CellAccumulator {
+    /// An empty accumulator.
+    pub fn new(layout: ComponentLayout, color: ColorMode) -> Self {
+        let k = layout.overlapping as usize;
+        Self {
+            layout,
+            color,
+            samples: 0,
+            rejected: 0,
+            weight_sum: 0.0,
+            weight_sq_sum: 0.0,
+            dense: vec![0.0; k * (k + 1) / 2],
+            b_overlap: vec![0.0; k * color.channels()],
+            part_ids: Vec::new(),
+            part_counts: Vec::new(),
+            part_data: Vec::new(),
+            last_slot: 0,
+        }
+    }
+
+    /// The component layout.
+    pub fn layout(&self) -> ComponentLayout {
+        self.layout
+    }
+
+    /// The colour mode.
+    pub fn color(&self) -> ColorMode {
+        self.color
+    }
+
+    /// Accepted samples.
+    pub fn samples(&self) -> u64 {
+        self.samples
+    }
+
+    /// Rejected samples (non-finite or invalid; never merged into the sums).
+    pub fn rejected(&self) -> u64 {
+        self.rejected
+    }
+
+    /// `Σ w` over accepted samples.
+    pub fn weight_sum(&self) -> f64 {
+        self.weight_sum
+    }
+
+    /// Kish effective sample count `(Σ w)² / Σ w²` (0 when empty).
+    pub fn effective_samples(&self) -> f64 {
+        if self.weight_sq_sum > 0.0 {
+            // Divide before squaring so that huge weights do not overflow.
+            let r = self.weight_sum / self.weight_sq_sum.sqrt();
+            r * r
+        } else {
+            0.0
+        }
+    }
+
+    /// True when no sample was accepted.
+    pub fn is_empty(&self) -> bool {
+        self.samples == 0
+    }
+
+    /// Number of partitions with at least one sample.
+    pub fn sampled_partitions(&self) -> usize {
+        self.part_ids.len()
+    }
+
+    fn stride(&self) -> usize {
+        1 + self.layout.overlapping as usize + self.color.channels()
+    }
+
+    /// `A_{P+i, P+j}` of the overlapping block.
+    pub fn dense(&self, i: usize, j: usize) -> f64 {
+        let k = self.layout.overlapping as usize;
+        let (i, j) = if i <= j { (i, j) } else { (j, i) };
+        self.dense[row_start(k, i) + (j - i)]
+    }
+
+    /// `b_{P+i}` of overlapping component `i`, one value per channel of the colour mode.
+    pub fn b_overlapping(&self, i: usize) -> &[f64] {
+        let c = self.color.channels();
+        &self.b_overlap[i * c..(i + 1) * c]
+    }
+
+    /// The sampled partitions in increasing index order.
+    pub fn partitions(&self) -> impl ExactSizeIterator<Item = PartitionMoments<'_>> + '_ {
+        let (k, c, stride) = (
+            self.layout.overlapping as usize,
+            self.color.channels(),
+            self.stride(),
+        );
+        self.part_ids.iter().enumerate().map(move |(slot, &id)| {
+            let d = &self.part_data[slot * stride..(slot + 1) * stride];
+            PartitionMoments {
+                id,
+                count: self.part_counts[slot],
+                diag: d[0],
+                cross: &d[1..1 + k],
+                b: &d[1 + k..1 + k + c],
+            }
+        })
+    }
+
+    /// Moments of partition `id`, if it was sampled.
+    pub fn partition(&self, id: u32) -> Option<PartitionMoments<'_>> {
+        let slot = self.part_ids.binary_search(&id).ok()?;
+        self.partitions().nth(slot)
+    }
+
+    fn slot_for(&mut self, id: u32) -> usize {
+        if self.part_ids.get(self.last_slot) == Some(&id) {
+            return self.last_slot;
+        }
+        let slot = match self.part_ids.binary_search(&id) {
+            Ok(s) => s,
+            Err(s) => {
+                let stride = self.stride();
+                self.part_ids.insert(s, id);
+                self.part_counts.insert(s, 0);
+                self.part_data
+                    .splice(s * stride..s * stride, std::iter::repeat_n(0.0, stride));
+                s
+            }
+        };
+        self.last_slot = slot;
+        slot
+    }
+
+    /// Adds one training sample with weight `weight` (see [`training_weight`]) and RGB value
+    /// `value` = `F = f/p`.
+    ///
+    /// On rejection nothing but the rejection counter changes.
+    pub fn add(
+        &mut self,
+        weight: f64,
+        value: [f64; CHANNELS],
+        sample: &CvSample<'_>,
+    ) -> Result<(), SampleRejection> {
+        let r = self.check_and_add(weight, value, sample);
+        if r.is_err() {
+            self.rejected += 1;
+        }
+        r
+    }
+
+    /// [`add`](Self::add) for single-precision renderer values (accumulated in `f64`).
+    pub fn add_f32(
+        &mut self,
+        weight: f32,
+        value: [f32; CHANNELS],
+        pdf: f32,
+        partition: Option<(u32, f32)>,
+        overlapping: &[f32],
+    ) -> Result<(), SampleRejection> {
+        let mut lam = [0.0f64; MAX_OVERLAPPING as usize];
+        if overlapping.len() > lam.len() {
+            self.rejected += 1;
+            return Err(SampleRejection::WrongComponentCount);
+        }
+        for (d, &s) in lam.iter_mut().zip(overlapping) {
+            *d = f64::from(s);
+        }
+        let sample = CvSample {
+            pdf: f64::from(pdf),
+            partition: partition.map(|(k, l)| (k, f64::from(l))),
+            overlapping: &lam[..overlapping.len()],
+        };
+        self.add(f64::from(weight), value.map(f64::from), &sample)
+    }
+
+    fn check_and_add(
+        &mut self,
+        w: f64,
+        value: [f64; CHANNELS],
+        s: &CvSample<'_>,
+    ) -> Result<(), SampleRejection> {
+        let k = self.layout.overlapping as usize;
+        if s.overlapping.len() != k {
+            return Err(SampleRejection::WrongComponentCount);
+        }
+        if !w.is_finite()
+            || !s.pdf.is_finite()
+            || value.iter().any(|v| !v.is_finite())
+            || s.overlapping.iter().any(|l| !l.is_finite())
+            || s.partition.is_some_and(|(_, l)| !l.is_finite())
+        {
+            return Err(SampleRejection::NonFinite);
+        }
+        if w < 0.0 {
+            return Err(SampleRejection::NegativeWeight);
+        }
+        if s.pdf <= 0.0 {
+            return Err(SampleRejection::NonPositivePdf);
+        }
+        let inv_p = 1.0 / s.pdf;
+        let mut r = [0.0f64; MAX_OVERLAPPING as usize];
+        let mut max_r = 0.0f64;
+        for (ri, &l) in r.iter_mut().zip(s.overlapping) {
+            *ri = l * inv_p;
+            max_r = max_r.max(ri.abs());
+        }
+        let part = match s.partition {
+            Some((id, l)) => {
+                if id >= self.layout.partitions {
+                    return Err(SampleRejection::PartitionOutOfRange);
+                }
+                let rk = l * inv_p;
+                max_r = max_r.max(rk.abs());
+                (rk != 0.0).then_some((id, rk))
+            }
+            None => None,
+        };
+        let y_mono;
+        let y: &[f64] = match self.color {
+            ColorMode::Rgb => &value,
+            ColorMode::Mono => {
+                y_mono = [(value[0] + value[1] + value[2]) / 3.0];
+                &y_mono
+            }
+        };
+        let max_y = y.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        // Every product added below is bounded by these two; NaN ratios fail too.
+        if !(w * max_r * max_r).is_finite() || !(w * max_r * max_y).is_finite() {
+            return Err(SampleRejection::NonFinite);
+        }
+
+        self.samples += 1;
+        self.weight_sum += w;
+        self.weight_sq_sum += w * w;
+        let c = y.len();
+        for i in 0..k {
+            let wri = w * r[i];
+            let row = row_start(k, i);
+            for (d, &rj) in self.dense[row..row + (k - i)].iter_mut().zip(&r[i..k]) {
+                *d += wri * rj;
+            }
+            for (ch, &yc) in y.iter().enumerate() {
+                self.b_overlap[i * c + ch] += wri * yc;
+            }
+        }
+        if let Some((id, rk)) = part {
+            let stride = self.stride();
+            let slot = self.slot_for(id);
+            self.part_counts[slot] += 1;
+            let d = &mut self.part_data[slot * stride..(slot + 1) * stride];
+            let wrk = w * rk;
+            d[0] += wrk * rk;
+            for j in 0..k {
+                d[1 + j] += wrk * r[j];
+            }
+            for (ch, &yc) in y.iter().enumerate() {
+                d[1 + k + ch] += wrk * yc;
+            }
+        }
+        Ok(())
+    }
+
+    /// Adds `other`'s sums into `self` (plain element-wise `f64` addition).
+    ///
+    /// Fails without changing `self` if layouts or colour modes differ.
+    pub fn merge(&mut self, other: &CellAccumulator) -> Result<(), CellError> {
+        if self.layout != other.layout || self.color != other.color {
+            return Err(CellError::LayoutMismatch);
+        }
+        self.samples += other.samples;
+        self.rejected += other.rejected;
+        self.weight_sum += other.weight_sum;
+        self.weight_sq_sum += other.weight_sq_sum;
+        for (a, b) in self.dense.iter_mut().zip(&other.dense) {
+            *a += b;
+        }
+        for (a, b) in self.b_overlap.iter_mut().zip(&other.b_overlap) {
+            *a += b;
+        }
+        if other.part_ids.is_empty() {
+            return Ok(());
+        }
+        // Merge-join of two sorted partition lists.
+        let stride = self.stride();
+        let n = self.part_ids.len() + other.part_ids.len();
+        let mut ids = Vec::with_capacity(n);
+        let mut counts = Vec::with_capacity(n);
+        let mut data = Vec::with_capacity(n * stride);
+        let (mut i, mut j) = (0, 0);
+        while i < self.part_ids.len() || j < other.part_ids.len() {
+            let a = self.part_ids.get(i).copied();
+            let b = other.part_ids.get(j).copied();
+            match (a, b) {
+                (Some(x), Some(y)) if x == y => {
+                    ids.push(x);
+                    counts.push(self.part_counts[i] + other.part_counts[j]);
+                    let da = &self.part_data[i * stride..(i + 1) * stride];
+                    let db = &other.part_data[j * stride..(j + 1) * stride];
+                    data.extend(da.iter().zip(db).map(|(p, q)| p + q));
+                    i += 1;
+                    j += 1;
+                }
+                (Some(x), Some(y)) if x < y => {
+                    ids.push(x);
+                    counts.push(self.part_counts[i]);
+                    data.extend_from_slice(&self.part_data[i * stride..(i + 1) * stride]);
+                    i += 1;
+                }
+                (Some(x), None) => {
+                    ids.push(x);
+                    counts.push(self.part_counts[i]);
+                    data.extend_from_slice(&self.part_data[i * stride..(i + 1) * stride]);
+                    i += 1;
+                }
+                (_, Some(y)) => {
+                    ids.push(y);
+                    counts.push(other.part_counts[j]);
+                    data.extend_from_slice(&other.part_data[j * stride..(j + 1) * stride]);
+                    j += 1;
+                }
+                (None, None) => unreachable!("loop condition"),
+            }
+        }
+        self.part_ids = ids;
+        self.part_counts = counts;
+        self.part_data = data;
+        self.last_slot = 0;
+        Ok(())
+    }
+
+    /// Merges `parts` in the given (canonical) order into an accumulator of `layout`.
+    pub fn merge_all<'a>(
+        layout: ComponentLayout,
+        color: ColorMode,
+        parts: impl IntoIterator<Item = &'a CellAccumulator>,
+    ) -> Result<Self, CellError> {
+        let mut acc = Self::new(layout, color);
+        for p in parts {
+            acc.merge(p)?;
+        }
+        Ok(acc)
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// Binary encoding.
+
+/// Magic bytes opening an encoded accumulator.
+pub const MAGIC: [u8; 4] = *b"CVAC";
+/// Current encoding version.
+pub const VERSION: u16 = 1;
+/// Size of the fixed header in bytes.
+const HEADER_LEN: usize = 4 + 2 + 1 + 1 + 4 + 4 + 8 + 8 + 8 + 8;
+
+impl CellAccumulator {
+    /// Encodes the accumulator (little endian, version [`VERSION`]).
+    ///
+    /// Layout: magic `CVAC`, `u16` version, `u8` colour (0 RGB, 1 mono), `u8` 0,
+    /// `u32` P, `u32` K, `u64` samples, `u64` rejected, `f64` Σw, `f64` Σw²,
+    /// `K(K+1)/2` `f64` (packed upper dense block), `K·C` `f64` (overlapping `b`),
+    /// `u32` entry count, then per sampled partition `u32` index, `u64` count and
+    /// `1 + K + C` `f64` (diag, cross, `b`). Only sampled partitions are written.
+    pub fn encode(&self) -> Vec<u8> {
+        let mut out = Vec::with_capacity(self.encoded_len());
+        out.extend_from_slice(&MAGIC);
+        out.extend_from_slice(&VERSION.to_le_bytes());
+        out.push(match self.color {
+            ColorMode::Rgb => 0,
+            ColorMode::Mono => 1,
+        });
+        out.push(0);
+        out.extend_from_slice(&self.layout.partitions.to_le_bytes());
+        out.extend_from_slice(&self.layout.overlapping.to_le_bytes());
+        out.extend_from_slice(&self.samples.to_le_bytes());
+        out.extend_from_slice(&self.rejected.to_le_bytes());
+        out.extend_from_slice(&self.weight_sum.to_le_bytes());
+        out.extend_from_slice(&self.weight_sq_sum.to_le_bytes());
+        for v in self.dense.iter().chain(&self.b_overlap) {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        out.extend_from_slice(&(self.part_ids.len() as u32).to_le_bytes());
+        let stride = self.stride();
+        for (slot, id) in self.part_ids.iter().enumerate() {
+            out.extend_from_slice(&id.to_le_bytes());
+            out.extend_from_slice(&self.part_counts[slot].to_le_bytes());
+            for v in &self.part_data[slot * stride..(slot + 1) * stride] {
+                out.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+        out
+    }
+
+    /// Exact length of [`encode`](Self::encode)'s output.
+    pub fn encoded_len(&self) -> usize {
+        HEADER_LEN
+            + 8 * (self.dense.len() + self.b_overlap.len())
+            + 4
+            + self.part_ids.len() * (12 + 8 * self.stride())
+    }
+
+    /// Decodes and validates an accumulator; never panics on arbitrary bytes.
+    pub fn decode(bytes: &[u8]) -> Result<Self, CellError> {
+        let mut r = Reader { bytes, pos: 0 };
+        if r.take(4)? != MAGIC {
+            return Err(CellError::BadMagic);
+        }
+        let version = r.u16()?;
+        if version != VERSION {
+            return Err(CellError::UnsupportedVersion(version));
+        }
+        let color = match r.u8()? {
+            0 => ColorMode::Rgb,
+            1 => ColorMode::Mono,
+            _ => return Err(CellError::BadHeader),
+        };
+        if r.u8()? != 0 {
+            return Err(CellError::BadHeader);
+        }
+        let partitions = r.u32()?;
+        let overlapping = r.u32()?;
+        let layout = ComponentLayout::new(partitions, overlapping)?;
+        let mut acc = Self::new(layout, color);
+        acc.samples = r.u64()?;
+        acc.rejected = r.u64()?;
+        acc.weight_sum = r.nonneg_f64()?;
+        acc.weight_sq_sum = r.nonneg_f64()?;
+        for v in acc.dense.iter_mut().chain(acc.b_overlap.iter_mut()) {
+            *v = r.finite_f64()?;
+        }
+        let k = overlapping as usize;
+        for i in 0..k {
+            let at = r.pos;
+            if acc.dense(i, i) < 0.0 {
+                return Err(CellError::InvalidValue(at));
+            }
+        }
+        let entries = r.u32()? as u64;
+        let stride = acc.stride();
+        let entry_len = 12 + 8 * stride as u64;
+        let remaining = (bytes.len() - r.pos) as u64;
+        if entries > u64::from(partitions) || entries * entry_len > remaining {
+            return Err(CellError::BadEntryCount(entries));
+        }
+        let n = entries as usize;
+        acc.part_ids.reserve_exact(n);
+        acc.part_counts.reserve_exact(n);
+        acc.part_data.reserve_exact(n * stride);
+        let mut prev: Option<u32> = None;
+        for _ in 0..n {
+            let at = r.pos;
+            let id = r.u32()?;
+            let count = r.u64()?;
+            if id >= partitions || prev.is_some_and(|p| id <= p) || count == 0 {
+                return Err(CellError::BadPartition(at));
+            }
+            prev = Some(id);
+            acc.part_ids.push(id);
+            acc.part_counts.push(count);
+            acc.part_data.push(r.nonneg_f64()?);
+            for _ in 1..stride {
+                let v = r.finite_f64()?;
+                acc.part_data.push(v);
+            }
+        }
+        if r.pos != bytes.len() {
+            return Err(CellError::Trailing(bytes.len() - r.pos));
+        }
+        Ok(acc)
+    }
+}
+
+struct Reader<'a> {
+    bytes: &'a [u8],
+    pos: usize,
+}
+
+impl<'a> Reader<'a> {
+    fn take(&mut self, n: usize) -> Result<&'a [u8], CellError> {
+        let end = self.pos.checked_add(n).filter(|&e| e <= self.bytes.len());
+        match end {
+            Some(e) => {
+                let s = &self.bytes[self.pos..e];
+                self.pos = e;
+                Ok(s)
+            }
+            None => Err(CellError::Truncated {
+                offset: self.pos,
+                needed: n,
+            }),
+        }
+    }
+    fn array<const N: usize>(&mut self) -> Result<[u8; N], CellError> {
+        let s = self.take(N)?;
+        let mut a = [0u8; N];
+        a.copy_from_slice(s);
+        Ok(a)
+    }
+    fn u8(&mut self) -> Result<u8, CellError> {
+        Ok(self.array::<1>()?[0])
+    }
+    fn u16(&mut self) -> Result<u16, CellError> {
+        Ok(u16::from_le_bytes(self.array()?))
+    }
+    fn u32(&mut self) -> Result<u32, CellError> {
+        Ok(u32::from_le_bytes(self.array()?))
+    }
+    fn u64(&mut self) -> Result<u64, CellError> {
+        Ok(u64::from_le_bytes(self.array()?))
+    }
+    fn finite_f64(&mut self) -> Result<f64, CellError> {
+        let at = self.pos;
+        let v = f64::from_le_bytes(self.array()?);
+        if v.is_finite() {
+            Ok(v)
+        } else {
+            Err(CellError::InvalidValue(at))
+        }
+    }
+    fn nonneg_f64(&mut self) -> Result<f64, CellError> {
+        let at = self.pos;
+        let v = self.finite_f64()?;
+        if v >= 0.0 {
+            Ok(v)
+        } else {
+            Err(CellError::InvalidValue(at))
+        }
+    }
+}

@@ -1,0 +1,582 @@
+//! Solving a cell's CV system and applying the coefficients [Hua eq. 14, 21, 32–33].
+//!
+//! # What is solved
+//! `A α = b` with the sums of a [`CellAccumulator`] (one right-hand side per channel).
+//! The partition block of `A` is diagonal because per-light pdfs never overlap
+//! [Hua eq. 30], so [`solve`] eliminates it with the Schur complement [Hua eq. 32]:
+//! a `K × K` system for the overlapping coefficients, then each partition coefficient by
+//! back-substitution [Hua eq. 33]. Time and memory are linear in the number of sampled
+//! partitions. [`solve_dense`] assembles and factorises the full matrix; it is the test
+//! oracle and fine for small systems.
+//!
+//! # Policy for hard cells (both solvers apply it identically)
+//! | step | rule | default |
+//! |---|---|---|
+//! | empty cell | no accepted sample → fallback | |
+//! | too few samples | `samples < min_samples` → fallback | 16 |
+//! | too few effective samples | Kish `(Σw)²/Σw² < min_effective_samples` → fallback | 4 |
+//! | inactive components | a partition with `< min_partition_samples` samples or zero diagonal, or an overlapping component with zero diagonal, gets `α = 0` and is removed from the system (never poisons it) | 1 |
+//! | regularisation | Tikhonov on the Jacobi-scaled system: `A + ridge · diag(A)`; shrinks `α` toward the plain estimator and bounds the scaled condition number by about `(k + ridge)/ridge` | `1e-6` |
+//! | ill-conditioned | condition estimate `(max Lᵢᵢ / min Lᵢᵢ)²` of the scaled Cholesky factor above `max_condition` → fallback | `1e12` |
+//! | failure | Cholesky fails or any `α` is NaN/Inf → fallback | |
+//!
+//! The **fallback is the plain estimator**, `α ≡ 0`. By [Hua eq. 14] it is equivalent to
+//! any shifted set `α_k = s · n_k c_k` (`n_k c_k` = effective sample count of the
+//! component, summed over its pdfs), which gives the same estimate; this module therefore
+//! only ever returns `α ≡ 0` on fallback.
+//!
+//! # Applying
+//! Per sample the CV subtracts [`CellCoefficients::cv_term`] = `Σ_k α_k λ_k / p` from the
+//! sample value `F`; per vertex it adds [`CellCoefficients::alpha_sum`] = `Σ_k α_k` once
+//! (each `λ_k` integrates to one) [Hua eq. 17].
+//!
+//! The ridge changes `α`, never the expectation of the CV estimator: any fixed `α`
+//! (computed from independent training samples) gives an unbiased estimate.
+
+use nalgebra::{DMatrix, DVector};
+
+use crate::cell::{CHANNELS, CellAccumulator, ColorMode, ComponentLayout, CvSample};
+
+/// How a cell system is regularised and when it falls back (see the module table).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SolvePolicy {
+    /// Relative Tikhonov regularisation: `A + ridge · diag(A)`.
+    pub ridge: f64,
+    /// Minimum accepted samples in the cell.
+    pub min_samples: u64,
+    /// Minimum Kish effective sample count `(Σw)²/Σw²`.
+    pub min_effective_samples: f64,
+    /// Minimum samples for a partition to get a fitted coefficient (else `α_k = 0`).
+    pub min_partition_samples: u64,
+    /// Largest accepted condition estimate of the scaled, regularised system.
+    pub max_condition: f64,
+}
+
+impl Default for SolvePolicy {
+    fn default() -> Self {
+        Self {
+            ridge: 1e-6,
+            min_samples: 16,
+            min_effective_samples: 4.0,
+            min_partition_samples: 1,
+            max_condition: 1e12,
+        }
+    }
+}
+
+/// Why a cell fell back to the plain estimator (`α ≡ 0`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum FallbackReason {
+    /// No accepted sample.
+    Empty,
+    /// Fewer accepted samples than [`SolvePolicy::min_samples`].
+    TooFewSamples,
+    /// Effective sample count below [`SolvePolicy::min_effective_samples`].
+    TooFewEffectiveSamples,
+    /// Every component has a zero diagonal (e.g. all `λ` zero: full occlusion).
+    NoActiveComponents,
+    /// Cholesky factorisation failed.
+    NotPositiveDefinite,
+    /// Condition estimate above [`SolvePolicy::max_condition`].
+    IllConditioned,
+    /// A coefficient came out NaN or infinite.
+    NonFinite,
+}
+
+/// Outcome of a cell solve.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum SolveStatus {
+    /// Coefficients were fitted.
+    Solved,
+    /// The plain estimator is used (`α ≡ 0`).
+    Fallback(FallbackReason),
+}
+
+/// Diagnostics of a cell solve.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SolveDiagnostics {
+    /// Solved or why not.
+    pub status: SolveStatus,
+    /// Condition estimate of the scaled, regularised system (`NaN` if not factorised).
+    pub condition: f64,
+    /// Partitions that entered the system.
+    pub active_partitions: usize,
+    /// Overlapping components that entered the system.
+    pub active_overlapping: usize,
+    /// Kish effective sample count of the cell.
+    pub effective_samples: f64,
+}
+
+/// CV coefficients of one cell: `α` per component (per channel for RGB).
+///
+/// Partitions without a fitted coefficient are absent (their `α` is 0).
+#[derive(Clone, Debug, PartialEq)]
+pub struct CellCoefficients {
+    layout: ComponentLayout,
+    color: ColorMode,
+    partition_ids: Vec<u32>,
+    /// `len(partition_ids) × C`.
+    partition_alpha: Vec<f64>,
+    /// `K × C`.
+    overlapping_alpha: Vec<f64>,
+    alpha_sum: [f64; CHANNELS],
+    diagnostics: SolveDiagnostics,
+}
+
+impl CellCoefficients {
+    /// The plain estimator: every `α = 0`.
+    pub fn zero(layout: ComponentLayout, color: ColorMode, diagnostics: SolveDiagnostics) -> Self {
+        Self {
+            layout,
+            color,
+            partition_ids: Vec::new(),
+            partition_alpha: Vec::new(),
+            overlapping_alpha: vec![0.0; layout.overlapping as usize * color.channels()],
+            alpha_sum: [0.0; CHANNELS],
+            diagnostics,
+        }
+    }
+
+    /// The plain estimator for `layout` (`α ≡ 0`, status `Solved` with no active component).
+    pub fn plain(layout: ComponentLayout, color: ColorMode) -> Self {
+        Self::zero(
+            layout,
+            color,
+            SolveDiagnostics {
+                status: SolveStatus::Solved,
+                condition: 1.0,
+                active_partitions: 0,
+                active_overlapping: 0,
+                effective_samples: 0.0,
+            },
+        )
+    }
+
+    /// Coefficients from explicit values: `partitions` are `(index, α per channel)` pairs
+    /// (any order, indices `< P`, duplicates summed), `overlapping` has `K` entries.
+    /// Returns `None` if an index or a length is out of range or a value is not finite.
+    pub fn from_values(
+        layout: ComponentLayout,
+        color: ColorMode,
+        partitions: &[(u32, [f64; CHANNELS])],
+        overlapping: &[[f64; CHANNELS]],
+    ) -> Option<Self> {
+        if overlapping.len() != layout.overlapping as usize {
+            return None;
+        }
+        let all_finite = partitions
+            .iter()
+            .flat_map(|p| p.1)
+            .chain(overlapping.iter().flatten().copied())
+            .all(f64::is_finite);
+        if !all_finite || partitions.iter().any(|p| p.0 >= layout.partitions) {
+            return None;
+        }
+        let c = color.channels();
+        let mut sorted: Vec<(u32, [f64; CHANNELS])> = partitions.to_vec();
+        sorted.sort_by_key(|p| p.0);
+        let mut out = Self::zero(
+            layout,
+            color,
+            SolveDiagnostics {
+                status: SolveStatus::Solved,
+                condition: f64::NAN,
+                active_partitions: 0,
+                active_overlapping: layout.overlapping as usize,
+                effective_samples: 0.0,
+            },
+        );
+        for (id, a) in sorted {
+            if out.partition_ids.last() == Some(&id) {
+                let n = out.partition_alpha.len();
+                for (dst, src) in out.partition_alpha[n - c..].iter_mut().zip(&a) {
+                    *dst += src;
+                }
+            } else {
+                out.partition_ids.push(id);
+                out.partition_alpha.extend_from_slice(&a[..c]);
+            }
+        }
+        for (j, a) in overlapping.iter().enumerate() {
+            out.overlapping_alpha[j * c..(j + 1) * c].copy_from_slice(&a[..c]);
+        }
+        out.diagnostics.active_partitions = out.partition_ids.len();
+        out.finish();
+        Some(out)
+    }
+
+    fn finish(&mut self) {
+        let c = self.color.channels();
+        let mut sum = [0.0; CHANNELS];
+        for chunk in self
+            .partition_alpha
+            .chunks_exact(c)
+            .chain(self.overlapping_alpha.chunks_exact(c))
+        {
+            for (ch, s) in sum.iter_mut().enumerate() {
+                *s += chunk[if c == 1 { 0 } else { ch }];
+            }
+        }
+        self.alpha_sum = sum;
+    }
+
+    /// The layout the coefficients were solved for.
+    pub fn layout(&self) -> ComponentLayout {
+        self.layout
+    }
+
+    /// The colour mode.
+    pub fn color(&self) -> ColorMode {
+        self.color
+    }
+
+    /// Solve diagnostics.
+    pub fn diagnostics(&self) -> &SolveDiagnostics {
+        &self.diagnostics
+    }
+
+    /// True when this is the plain estimator because the solve fell back.
+    pub fn is_fallback(&self) -> bool {
+        matches!(self.diagnostics.status, SolveStatus::Fallback(_))
+    }
+
+    fn broadcast(&self, a: &[f64]) -> [f64; CHANNELS] {
+        if a.len() == 1 {
+            [a[0]; CHANNELS]
+        } else {
+            [a[0], a[1], a[2]]
+        }
+    }
+
+    /// `α_k` of partition `id` (0 when not fitted).
+    pub fn alpha_partition(&self, id: u32) -> [f64; CHANNELS] {
+        let c = self.color.channels();
+        match self.partition_ids.binary_search(&id) {
+            Ok(s) => self.broadcast(&self.partition_alpha[s * c..(s + 1) * c]),
+            Err(_) => [0.0; CHANNELS],
+        }
+    }
+
+    /// `α` of overlapping component `j` (0 when `j >= K`).
+    pub fn alpha_overlapping(&self, j: usize) -> [f64; CHANNELS] {
+        let c = self.color.channels();
+        self.overlapping_alpha
+            .get(j * c..(j + 1) * c)
+            .map_or([0.0; CHANNELS], |a| self.broadcast(a))
+    }
+
+    /// Fitted partitions in increasing index order with their `α` (per channel).
+    pub fn partitions(&self) -> impl Iterator<Item = (u32, [f64; CHANNELS])> + '_ {
+        let c = self.color.channels();
+        self.partition_ids.iter().enumerate().map(move |(s, &id)| {
+            (
+                id,
+                self.broadcast(&self.partition_alpha[s * c..(s + 1) * c]),
+            )
+        })
+    }
+
+    /// `Σ_k α_k` per channel: added once per vertex [Hua eq. 17].
+    pub fn alpha_sum(&self) -> [f64; CHANNELS] {
+        self.alpha_sum
+    }
+
+    /// The CV term of one sample, `Σ_k α_k λ_k(x) / p(x)` per channel.
+    ///
+    /// Zero for a non-positive or non-finite pdf, and for an overlapping slice of the wrong
+    /// length (such a sample is not a valid CV sample; the caller keeps its plain value).
+    pub fn cv_term(&self, sample: &CvSample<'_>) -> [f64; CHANNELS] {
+        let mut out = [0.0; CHANNELS];
+        if !(sample.pdf > 0.0)
+            || !sample.pdf.is_finite()
+            || sample.overlapping.len() != self.layout.overlapping as usize
+        {
+            return out;
+        }
+        let inv_p = 1.0 / sample.pdf;
+        let c = self.color.channels();
+        let mut add = |a: &[f64], r: f64| {
+            for (ch, o) in out.iter_mut().enumerate() {
+                *o += a[if c == 1 { 0 } else { ch }] * r;
+            }
+        };
+        for (j, &l) in sample.overlapping.iter().enumerate() {
+            if l != 0.0 {
+                add(&self.overlapping_alpha[j * c..(j + 1) * c], l * inv_p);
+            }
+        }
+        if let Some((id, l)) = sample.partition
+            && l != 0.0
+            && let Ok(s) = self.partition_ids.binary_search(&id)
+        {
+            add(&self.partition_alpha[s * c..(s + 1) * c], l * inv_p);
+        }
+        out
+    }
+
+    /// The controlled sample value `F − Σ_k α_k λ_k / p` (add [`alpha_sum`](Self::alpha_sum)
+    /// once per vertex).
+    pub fn apply(&self, value: [f64; CHANNELS], sample: &CvSample<'_>) -> [f64; CHANNELS] {
+        let t = self.cv_term(sample);
+        [value[0] - t[0], value[1] - t[1], value[2] - t[2]]
+    }
+}
+
+/// Common pre-checks; returns the diagnostics skeleton or the fallback coefficients.
+fn precheck(
+    acc: &CellAccumulator,
+    policy: &SolvePolicy,
+) -> Result<SolveDiagnostics, Box<CellCoefficients>> {
+    let diag = SolveDiagnostics {
+        status: SolveStatus::Solved,
+        condition: f64::NAN,
+        active_partitions: 0,
+        active_overlapping: 0,
+        effective_samples: acc.effective_samples(),
+    };
+    let reason = if acc.is_empty() {
+        Some(FallbackReason::Empty)
+    } else if acc.samples() < policy.min_samples {
+        Some(FallbackReason::TooFewSamples)
+    } else if !(diag.effective_samples >= policy.min_effective_samples) {
+        Some(FallbackReason::TooFewEffectiveSamples)
+    } else {
+        None
+    };
+    match reason {
+        Some(r) => Err(Box::new(fallback(acc, diag, r))),
+        None => Ok(diag),
+    }
+}
+
+fn fallback(
+    acc: &CellAccumulator,
+    mut diag: SolveDiagnostics,
+    reason: FallbackReason,
+) -> CellCoefficients {
+    diag.status = SolveStatus::Fallback(reason);
+    CellCoefficients::zero(acc.layout(), acc.color(), diag)
+}
+
+fn active_overlapping(acc: &CellAccumulator) -> Vec<usize> {
+    (0..acc.layout().overlapping as usize)
+        .filter(|&j| acc.dense(j, j) > 0.0)
+        .collect()
+}
+
+/// Condition estimate from a Cholesky factor's diagonal: `(max Lᵢᵢ / min Lᵢᵢ)²`,
+/// extended by `extra` (the scaled diagonal of eliminated rows).
+fn condition_from_l(l_diag: impl Iterator<Item = f64>, extra: Option<f64>) -> f64 {
+    let (mut lo, mut hi) = (f64::INFINITY, 0.0f64);
+    for d in l_diag.map(|d| d * d).chain(extra) {
+        lo = lo.min(d);
+        hi = hi.max(d);
+    }
+    if lo > 0.0 { hi / lo } else { f64::INFINITY }
+}
+
+/// Solves a cell with the Schur complement of the partition block [Hua eq. 32–33].
+///
+/// `O(P_sampled · K² + K³)` time, `O(K²)` extra memory. Applies [`SolvePolicy`].
+pub fn solve(acc: &CellAccumulator, policy: &SolvePolicy) -> CellCoefficients {
+    let mut diag = match precheck(acc, policy) {
+        Ok(d) => d,
+        Err(c) => return *c,
+    };
+    let eps = policy.ridge.max(0.0);
+    let c = acc.color().channels();
+    let ov = active_overlapping(acc);
+    let q = ov.len();
+    let is_active = |p: &crate::cell::PartitionMoments<'_>| {
+        p.count >= policy.min_partition_samples && p.diag > 0.0
+    };
+    let active_partitions = acc.partitions().filter(is_active).count();
+    diag.active_partitions = active_partitions;
+    diag.active_overlapping = q;
+    if q == 0 && active_partitions == 0 {
+        return fallback(acc, diag, FallbackReason::NoActiveComponents);
+    }
+
+    // Scaled Schur complement S̃ = D (B' − Σ_k c_k c_kᵀ / d'_k) D, D = diag(B')^{-1/2}, and
+    // its right-hand side D (b_o − Σ_k c_k b_k / d'_k) [Hua eq. 32].
+    let scale: Vec<f64> = ov
+        .iter()
+        .map(|&j| 1.0 / (acc.dense(j, j) * (1.0 + eps)).sqrt())
+        .collect();
+    let mut s = DMatrix::<f64>::zeros(q, q);
+    let mut rhs = DMatrix::<f64>::zeros(q, c);
+    for (a, &ja) in ov.iter().enumerate() {
+        for (b, &jb) in ov.iter().enumerate() {
+            s[(a, b)] = acc.dense(ja, jb);
+        }
+        s[(a, a)] *= 1.0 + eps;
+        for ch in 0..c {
+            rhs[(a, ch)] = acc.b_overlapping(ja)[ch];
+        }
+    }
+    if q > 0 {
+        let mut u = vec![0.0; q];
+        for p in acc.partitions().filter(is_active) {
+            let dk = p.diag * (1.0 + eps);
+            for (a, &ja) in ov.iter().enumerate() {
+                u[a] = p.cross[ja] / dk;
+            }
+            for (a, &ja) in ov.iter().enumerate() {
+                for (b, &jb) in ov.iter().enumerate().skip(a) {
+                    s[(a, b)] -= u[a] * p.cross[jb];
+                }
+                for ch in 0..c {
+                    rhs[(a, ch)] -= p.cross[ja] * (p.b[ch] / dk);
+                }
+            }
+        }
+        for a in 0..q {
+            for b in a..q {
+                let v = s[(a, b)] * scale[a] * scale[b];
+                s[(a, b)] = v;
+                s[(b, a)] = v;
+            }
+            for ch in 0..c {
+                rhs[(a, ch)] *= scale[a];
+            }
+        }
+    }
+
+    let alpha_o = if q > 0 {
+        let Some(chol) = s.cholesky() else {
+            return fallback(acc, diag, FallbackReason::NotPositiveDefinite);
+        };
+        let extra = (active_partitions > 0).then_some(1.0);
+        diag.condition = condition_from_l(chol.l_dirty().diagonal().iter().copied(), extra);
+        let mut x = chol.solve(&rhs);
+        for a in 0..q {
+            for ch in 0..c {
+                x[(a, ch)] *= scale[a];
+            }
+        }
+        x
+    } else {
+        diag.condition = 1.0;
+        DMatrix::zeros(0, c)
+    };
+    if !(diag.condition <= policy.max_condition) {
+        return fallback(acc, diag, FallbackReason::IllConditioned);
+    }
+
+    // Back-substitution for the partitions [Hua eq. 33].
+    let k = acc.layout().overlapping as usize;
+    let mut out = CellCoefficients::zero(acc.layout(), acc.color(), diag);
+    out.partition_ids.reserve_exact(active_partitions);
+    out.partition_alpha.reserve_exact(active_partitions * c);
+    for p in acc.partitions().filter(is_active) {
+        let dk = p.diag * (1.0 + eps);
+        out.partition_ids.push(p.id);
+        for ch in 0..c {
+            let mut num = p.b[ch];
+            for (a, &ja) in ov.iter().enumerate() {
+                num -= p.cross[ja] * alpha_o[(a, ch)];
+            }
+            out.partition_alpha.push(num / dk);
+        }
+    }
+    for (a, &ja) in ov.iter().enumerate() {
+        for ch in 0..c {
+            out.overlapping_alpha[ja * c + ch] = alpha_o[(a, ch)];
+        }
+    }
+    debug_assert_eq!(out.overlapping_alpha.len(), k * c);
+    if out
+        .partition_alpha
+        .iter()
+        .chain(&out.overlapping_alpha)
+        .any(|a| !a.is_finite())
+    {
+        return fallback(acc, diag, FallbackReason::NonFinite);
+    }
+    out.finish();
+    out
+}
+
+/// Solves a cell by assembling the full (active) matrix and factorising it (Cholesky of
+/// the Jacobi-scaled, regularised system). Same policy and result as [`solve`] up to
+/// rounding; `O((P+K)³)` — use for small systems and as a test oracle.
+pub fn solve_dense(acc: &CellAccumulator, policy: &SolvePolicy) -> CellCoefficients {
+    let mut diag = match precheck(acc, policy) {
+        Ok(d) => d,
+        Err(c) => return *c,
+    };
+    let eps = policy.ridge.max(0.0);
+    let c = acc.color().channels();
+    let ov = active_overlapping(acc);
+    let parts: Vec<_> = acc
+        .partitions()
+        .filter(|p| p.count >= policy.min_partition_samples && p.diag > 0.0)
+        .collect();
+    let (np, q) = (parts.len(), ov.len());
+    diag.active_partitions = np;
+    diag.active_overlapping = q;
+    let n = np + q;
+    if n == 0 {
+        return fallback(acc, diag, FallbackReason::NoActiveComponents);
+    }
+    let mut a = DMatrix::<f64>::zeros(n, n);
+    let mut b = DMatrix::<f64>::zeros(n, c);
+    for (i, p) in parts.iter().enumerate() {
+        a[(i, i)] = p.diag;
+        for (jj, &j) in ov.iter().enumerate() {
+            a[(i, np + jj)] = p.cross[j];
+            a[(np + jj, i)] = p.cross[j];
+        }
+        for ch in 0..c {
+            b[(i, ch)] = p.b[ch];
+        }
+    }
+    for (ii, &i) in ov.iter().enumerate() {
+        for (jj, &j) in ov.iter().enumerate() {
+            a[(np + ii, np + jj)] = acc.dense(i, j);
+        }
+        for ch in 0..c {
+            b[(np + ii, ch)] = acc.b_overlapping(i)[ch];
+        }
+    }
+    let scale = DVector::from_iterator(n, (0..n).map(|i| 1.0 / (a[(i, i)] * (1.0 + eps)).sqrt()));
+    for i in 0..n {
+        for j in 0..n {
+            a[(i, j)] *= scale[i] * scale[j];
+        }
+        a[(i, i)] = 1.0;
+        for ch in 0..c {
+            b[(i, ch)] *= scale[i];
+        }
+    }
+    let Some(chol) = a.cholesky() else {
+        return fallback(acc, diag, FallbackReason::NotPositiveDefinite);
+    };
+    diag.condition = condition_from_l(chol.l_dirty().diagonal().iter().copied(), None);
+    if !(diag.condition <= policy.max_condition) {
+        return fallback(acc, diag, FallbackReason::IllConditioned);
+    }
+    let x = chol.solve(&b);
+    let mut out = CellCoefficients::zero(acc.layout(), acc.color(), diag);
+    for (i, p) in parts.iter().enumerate() {
+        out.partition_ids.push(p.id);
+        for ch in 0..c {
+            out.partition_alpha.push(x[(i, ch)] * scale[i]);
+        }
+    }
+    for (jj, &j) in ov.iter().enumerate() {
+        for ch in 0..c {
+            out.overlapping_alpha[j * c + ch] = x[(np + jj, ch)] * scale[np + jj];
+        }
+    }
+    if out
+        .partition_alpha
+        .iter()
+        .chain(&out.overlapping_alpha)
+        .any(|a| !a.is_finite())
+    {
+        return fallback(acc, diag, FallbackReason::NonFinite);
+    }
+    out.finish();
+    out
+}

@@ -1,0 +1,797 @@
+//! Statistical tests of the CV estimator on 1-D integrals with closed-form answers
+//! [Hua §3.3, §5], and the hard cases of DESIGN §7.
+
+mod common;
+
+use common::{Pdf, Setup, mean_var, sum3};
+use estimators::cell::{CellAccumulator, ColorMode, ComponentLayout, CvSample, training_weight};
+use estimators::solve::{
+    CellCoefficients, FallbackReason, SolvePolicy, SolveStatus, solve, solve_dense,
+};
+use rand::{Rng, SeedableRng};
+use rand_pcg::Pcg64;
+
+fn poly(x: f64) -> [f64; 3] {
+    [x * x * x + 0.5, 2.0 * x, (std::f64::consts::PI * x).sin()]
+}
+const POLY_INTEGRAL: [f64; 3] = [0.75, 1.0, 2.0 / std::f64::consts::PI];
+
+fn three_overlapping(f: common::Integrand) -> Setup {
+    Setup {
+        comps: vec![Pdf::Uniform, Pdf::Linear, Pdf::Quadratic],
+        select: vec![0.3, 0.3, 0.4],
+        partitioned: false,
+        f,
+    }
+}
+
+fn plain(setup: &Setup) -> CellCoefficients {
+    CellCoefficients::plain(setup.layout(), ColorMode::Rgb)
+}
+
+#[test]
+fn cv_estimate_is_unbiased_over_many_seeds() {
+    let setup = three_overlapping(poly);
+    let policy = SolvePolicy::default();
+    let seeds = 200;
+    let mut means = Vec::new();
+    for s in 0..seeds {
+        // Training and estimation use independent samples, as in the render pass.
+        let coeffs = setup.train(64, 1000 + s, ColorMode::Rgb, &policy);
+        assert!(!coeffs.is_fallback());
+        let (m, _) = mean_var(&setup.estimates(&coeffs, 256, 50_000 + s));
+        means.push(m);
+    }
+    let (grand, var) = mean_var(&means);
+    for c in 0..3 {
+        let se = (var[c] / seeds as f64).sqrt();
+        assert!(
+            (grand[c] - POLY_INTEGRAL[c]).abs() < 4.5 * se,
+            "channel {c}: {} vs {} (se {se})",
+            grand[c],
+            POLY_INTEGRAL[c]
+        );
+    }
+}
+
+#[test]
+fn cv_variance_is_not_above_plain_mixture() {
+    let setup = three_overlapping(poly);
+    let coeffs = setup.train(4096, 7, ColorMode::Rgb, &SolvePolicy::default());
+    let (m_cv, v_cv) = mean_var(&setup.estimates(&coeffs, 20_000, 8));
+    let (m_pl, v_pl) = mean_var(&setup.estimates(&plain(&setup), 20_000, 8));
+    for c in 0..3 {
+        assert!(
+            v_cv[c] <= 1.05 * v_pl[c],
+            "channel {c}: cv {} plain {}",
+            v_cv[c],
+            v_pl[c]
+        );
+        let se = (v_pl[c] / 20_000.0).sqrt();
+        assert!((m_cv[c] - POLY_INTEGRAL[c]).abs() < 5.0 * se);
+        assert!((m_pl[c] - POLY_INTEGRAL[c]).abs() < 5.0 * se);
+    }
+    // With small training sets the estimated α is noisy but still no worse on average.
+    let mut worse = 0;
+    for s in 0..20 {
+        let c = setup.train(32, 100 + s, ColorMode::Rgb, &SolvePolicy::default());
+        let (_, v) = mean_var(&setup.estimates(&c, 4000, 900 + s));
+        if sum3(v) > 1.1 * sum3(v_pl) {
+            worse += 1;
+        }
+    }
+    assert!(
+        worse <= 2,
+        "{worse} of 20 small-training cells were >10% worse than plain"
+    );
+}
+
+fn cubic_mono(x: f64) -> [f64; 3] {
+    [3.0 * x * x; 3]
+}
+
+#[test]
+fn owen_zhou_bound_holds_for_best_technique() {
+    // f = 3x² with a 50/50 mixture of uniform and 2x. Technique variances σ²_t = ∫f²/p_t − 1:
+    // uniform 9/5 − 1 = 0.8, linear 9/8 − 1 = 0.125 → bound min σ²_t / c_t = 0.25.
+    let setup = Setup {
+        comps: vec![Pdf::Uniform, Pdf::Linear],
+        select: vec![0.5, 0.5],
+        partitioned: false,
+        f: cubic_mono,
+    };
+    let coeffs = setup.train(8192, 11, ColorMode::Mono, &SolvePolicy::default());
+    let n = 40_000;
+    let (m, v) = mean_var(&setup.estimates(&coeffs, n, 12));
+    let (_, v_pl) = mean_var(&setup.estimates(&plain(&setup), n, 12));
+    // Plain mixture: ∫ 9x⁴ / (0.5 + x) dx − 1 (closed form below).
+    let ln = (1.5f64 / 0.5).ln();
+    let integral = 9.0 * (0.25 - 0.5 / 3.0 + 0.25 / 2.0 - 0.125 + 0.0625 * ln);
+    let plain_var = integral - 1.0;
+    assert!(
+        (v_pl[0] - plain_var).abs() < 0.05 * plain_var,
+        "plain {} vs {plain_var}",
+        v_pl[0]
+    );
+    // Sampling error of a variance estimate: about var·sqrt(2/n) for light tails.
+    assert!(
+        v[0] <= 0.25 * (1.0 + 5.0 * (2.0 / n as f64).sqrt()),
+        "cv variance {} above Owen–Zhou bound 0.25",
+        v[0]
+    );
+    assert!(v[0] <= v_pl[0]);
+    assert!((m[0] - 1.0).abs() < 5.0 * (v[0] / n as f64).sqrt());
+}
+
+fn sine(x: f64) -> [f64; 3] {
+    [(2.0 * std::f64::consts::PI * x).sin(); 3]
+}
+
+#[test]
+fn zero_variance_for_signed_sine_with_positive_negative_partitions() {
+    // [Hua Fig. 4]: f = sin 2πx = p₊/π − p₋/π is in the span of the components.
+    let setup = Setup {
+        comps: vec![Pdf::SinPos, Pdf::SinNeg],
+        select: vec![0.5, 0.5],
+        partitioned: true,
+        f: sine,
+    };
+    let coeffs = setup.train(256, 3, ColorMode::Rgb, &SolvePolicy::default());
+    let (m, v) = mean_var(&setup.estimates(&coeffs, 4000, 4));
+    let (_, v_pl) = mean_var(&setup.estimates(&plain(&setup), 4000, 4));
+    let expected_plain = (2.0 / std::f64::consts::PI).powi(2);
+    assert!(
+        (v_pl[0] - expected_plain).abs() < 0.01 * expected_plain,
+        "plain mixture variance {}",
+        v_pl[0]
+    );
+    assert!(v[0] < 1e-9 * v_pl[0], "cv variance {}", v[0]);
+    assert!(m[0].abs() < 1e-6);
+    let a = coeffs.alpha_partition(0)[0];
+    assert!((a - 1.0 / std::f64::consts::PI).abs() < 1e-5, "α₊ = {a}");
+}
+
+fn colored_bsdf(x: f64) -> [f64; 3] {
+    // A coloured, perfectly importance-sampled "sky": f = colour · p_bsdf.
+    [0.9 * 2.0 * x, 0.4 * 2.0 * x, 0.1 * 2.0 * x]
+}
+
+#[test]
+fn zero_variance_restored_for_low_variance_component_rgb_only() {
+    // [Hua Fig. 5]: BSDF sampling is perfect, mixing in "guiding" adds variance; an RGB CV
+    // restores zero variance, a monochrome one cannot but still helps.
+    let setup = Setup {
+        comps: vec![Pdf::Linear, Pdf::Box(0.0, 0.5)],
+        select: vec![0.5, 0.5],
+        partitioned: false,
+        f: colored_bsdf,
+    };
+    let policy = SolvePolicy::default();
+    let rgb = setup.train(512, 5, ColorMode::Rgb, &policy);
+    let mono = setup.train(512, 5, ColorMode::Mono, &policy);
+    let (_, v_rgb) = mean_var(&setup.estimates(&rgb, 4000, 6));
+    let (_, v_mono) = mean_var(&setup.estimates(&mono, 4000, 6));
+    let (_, v_pl) = mean_var(&setup.estimates(&plain(&setup), 4000, 6));
+    assert!(
+        sum3(v_rgb) < 1e-9 * sum3(v_pl),
+        "rgb {v_rgb:?} plain {v_pl:?}"
+    );
+    assert!(
+        sum3(v_mono) > 1e-3 * sum3(v_pl),
+        "mono cannot be exact for a coloured integrand"
+    );
+    assert!(sum3(v_mono) < sum3(v_pl));
+}
+
+fn blue_green(x: f64) -> [f64; 3] {
+    // Constant brightness, colour varying from blue to green [Hua Fig. 3].
+    let t = x * x;
+    [0.0, t, 1.0 - t]
+}
+
+#[test]
+fn rgb_cv_beats_mono_on_colour_noise() {
+    let setup = Setup {
+        comps: vec![Pdf::Uniform, Pdf::Linear, Pdf::LinearDown],
+        select: vec![0.5, 0.25, 0.25],
+        partitioned: false,
+        f: blue_green,
+    };
+    let policy = SolvePolicy::default();
+    let rgb = setup.train(2048, 21, ColorMode::Rgb, &policy);
+    let mono = setup.train(2048, 21, ColorMode::Mono, &policy);
+    let (_, v_rgb) = mean_var(&setup.estimates(&rgb, 20_000, 22));
+    let (_, v_mono) = mean_var(&setup.estimates(&mono, 20_000, 22));
+    let (_, v_pl) = mean_var(&setup.estimates(&plain(&setup), 20_000, 22));
+    assert!(
+        sum3(v_rgb) < 0.5 * sum3(v_mono),
+        "rgb {} mono {}",
+        sum3(v_rgb),
+        sum3(v_mono)
+    );
+    assert!(sum3(v_mono) <= 1.05 * sum3(v_pl));
+}
+
+#[test]
+fn shifted_coefficients_give_the_same_estimate() {
+    // Two MIS techniques with one sample each per vertex: p = q₁ + q₂ (n = 1), λ_i = q_i,
+    // n_i c_i = 1. α and α + s (1, 1) give the same vertex estimate [Hua eq. 14].
+    let layout = ComponentLayout::new(0, 2).unwrap();
+    let a = CellCoefficients::from_values(
+        layout,
+        ColorMode::Rgb,
+        &[],
+        &[[0.3, -1.0, 2.0], [0.7, 0.1, 0.0]],
+    )
+    .unwrap();
+    let s = 12.5;
+    let b = CellCoefficients::from_values(
+        layout,
+        ColorMode::Rgb,
+        &[],
+        &[[0.3 + s, -1.0 + s, 2.0 + s], [0.7 + s, 0.1 + s, s]],
+    )
+    .unwrap();
+    let mut rng = Pcg64::seed_from_u64(1);
+    let techniques = [Pdf::Uniform, Pdf::Quadratic];
+    for _ in 0..1000 {
+        let mut est = [a.alpha_sum(), b.alpha_sum()];
+        for t in techniques {
+            let x = t.sample(rng.random());
+            let l = [techniques[0].pdf(x), techniques[1].pdf(x)];
+            let p = l[0] + l[1];
+            let f = poly(x).map(|v| v / p);
+            let smp = CvSample {
+                pdf: p,
+                partition: None,
+                overlapping: &l,
+            };
+            for (e, c) in est.iter_mut().zip([&a, &b]) {
+                let v = c.apply(f, &smp);
+                for ch in 0..3 {
+                    e[ch] += v[ch];
+                }
+            }
+        }
+        for ch in 0..3 {
+            assert!(
+                (est[0][ch] - est[1][ch]).abs() < 1e-12 * (1.0 + s.abs() * 4.0),
+                "{est:?}"
+            );
+        }
+    }
+}
+
+// ----------------------------------------------------------------------------------------
+// Schur solver against the dense oracle.
+
+/// A random cell: `p` partitions (light-like, non-overlapping) and `k` overlapping
+/// components, every sample picking one partition (or none) and random overlapping λ.
+fn random_cell(p: u32, k: u32, n: usize, seed: u64, color: ColorMode) -> CellAccumulator {
+    let mut rng = Pcg64::seed_from_u64(seed);
+    let mut acc = CellAccumulator::new(ComponentLayout::new(p, k).unwrap(), color);
+    let mut lam = vec![0.0; k as usize];
+    for _ in 0..n {
+        for l in lam.iter_mut() {
+            *l = if rng.random::<f64>() < 0.2 {
+                0.0
+            } else {
+                rng.random::<f64>() * 3.0
+            };
+        }
+        let part = (p > 0 && rng.random::<f64>() < 0.9)
+            .then(|| (rng.random_range(0..p), rng.random::<f64>() * 5.0 + 0.01));
+        let pdf = lam.iter().sum::<f64>() * 0.5 + part.map_or(0.0, |q| q.1) * 0.5 + 0.1;
+        let w = rng.random::<f64>() + 0.1;
+        let v = [
+            rng.random::<f64>(),
+            rng.random::<f64>() * 2.0,
+            rng.random::<f64>() - 0.5,
+        ];
+        acc.add(
+            w,
+            v,
+            &CvSample {
+                pdf,
+                partition: part,
+                overlapping: &lam,
+            },
+        )
+        .unwrap();
+    }
+    acc
+}
+
+fn max_rel_diff(a: &CellCoefficients, b: &CellCoefficients, layout: ComponentLayout) -> f64 {
+    let mut scale = 0.0f64;
+    let mut diff = 0.0f64;
+    for id in 0..layout.partitions {
+        let (x, y) = (a.alpha_partition(id), b.alpha_partition(id));
+        for c in 0..3 {
+            scale = scale.max(x[c].abs());
+            diff = diff.max((x[c] - y[c]).abs());
+        }
+    }
+    for j in 0..layout.overlapping as usize {
+        let (x, y) = (a.alpha_overlapping(j), b.alpha_overlapping(j));
+        for c in 0..3 {
+            scale = scale.max(x[c].abs());
+            diff = diff.max((x[c] - y[c]).abs());
+        }
+    }
+    diff / scale.max(f64::MIN_POSITIVE)
+}
+
+#[test]
+fn schur_equals_dense_on_random_systems() {
+    let policy = SolvePolicy::default();
+    for (p, k, n, seed) in [
+        (0, 3, 200, 1),
+        (5, 0, 200, 2),
+        (1, 1, 100, 3),
+        (10, 3, 500, 4),
+        (200, 3, 5000, 5),
+        (1000, 3, 20_000, 6),
+        (50, 8, 3000, 7),
+    ] {
+        for color in [ColorMode::Rgb, ColorMode::Mono] {
+            let acc = random_cell(p, k, n, seed, color);
+            let s = solve(&acc, &policy);
+            let d = solve_dense(&acc, &policy);
+            assert_eq!(s.diagnostics().status, SolveStatus::Solved);
+            assert_eq!(d.diagnostics().status, SolveStatus::Solved);
+            let r = max_rel_diff(&s, &d, acc.layout());
+            assert!(r < 1e-9, "P={p} K={k}: relative difference {r}");
+            let (cs, cd) = (s.diagnostics().condition, d.diagnostics().condition);
+            assert!((cs - cd).abs() <= 1e-6 * cd, "condition {cs} vs {cd}");
+        }
+    }
+}
+
+#[test]
+fn schur_solves_ten_thousand_partitions_exactly() {
+    // The dense oracle would need a 10 003² matrix; check the residual of the regularised
+    // system (A + ridge·diag A) α = b instead, using the accumulator's sparse sums.
+    let policy = SolvePolicy::default();
+    let (p, k) = (10_000u32, 3u32);
+    let acc = random_cell(p, k, 100_000, 99, ColorMode::Rgb);
+    let sol = solve(&acc, &policy);
+    assert_eq!(sol.diagnostics().status, SolveStatus::Solved);
+    assert_eq!(
+        sol.diagnostics().active_partitions,
+        acc.sampled_partitions()
+    );
+    let e = 1.0 + policy.ridge;
+    let mut worst = 0.0f64;
+    for ch in 0..3 {
+        let ao: Vec<f64> = (0..k as usize)
+            .map(|j| sol.alpha_overlapping(j)[ch])
+            .collect();
+        let mut ov_res: Vec<f64> = (0..k as usize)
+            .map(|i| {
+                (0..k as usize)
+                    .map(|j| acc.dense(i, j) * ao[j] * if i == j { e } else { 1.0 })
+                    .sum::<f64>()
+                    - acc.b_overlapping(i)[ch]
+            })
+            .collect();
+        let mut scale = 0.0f64;
+        for pm in acc.partitions() {
+            let ak = sol.alpha_partition(pm.id)[ch];
+            let row = pm.diag * e * ak + pm.cross.iter().zip(&ao).map(|(c, a)| c * a).sum::<f64>()
+                - pm.b[ch];
+            worst = worst.max(row.abs() / pm.b[ch].abs().max(pm.diag * ak.abs()).max(1e-300));
+            for (j, r) in ov_res.iter_mut().enumerate() {
+                *r += pm.cross[j] * ak;
+            }
+            scale = scale.max(pm.b[ch].abs());
+        }
+        for (i, r) in ov_res.iter().enumerate() {
+            worst = worst.max(
+                r.abs()
+                    / acc.b_overlapping(i)[ch]
+                        .abs()
+                        .max(acc.dense(i, i) * ao[i].abs()),
+            );
+        }
+    }
+    assert!(worst < 1e-9, "relative residual {worst}");
+}
+
+// ----------------------------------------------------------------------------------------
+// Hard cases (DESIGN §7), one named test each.
+
+#[test]
+fn all_zero_component_samples_get_zero_alpha() {
+    // Overlapping component 1 is fully occluded: λ₁ = 0 on every sample.
+    let mut acc = CellAccumulator::new(ComponentLayout::new(2, 2).unwrap(), ColorMode::Rgb);
+    let mut rng = Pcg64::seed_from_u64(4);
+    for _ in 0..500 {
+        let x: f64 = rng.random();
+        let lam = [2.0 * x, 0.0];
+        let part = if x < 0.5 { (0, 2.0) } else { (1, 2.0) };
+        let pdf = 0.5 * lam[0] + 0.5 * 2.0;
+        acc.add(
+            1.0,
+            [x / pdf; 3],
+            &CvSample {
+                pdf,
+                partition: Some(part),
+                overlapping: &lam,
+            },
+        )
+        .unwrap();
+    }
+    let c = solve(&acc, &SolvePolicy::default());
+    assert_eq!(c.diagnostics().status, SolveStatus::Solved);
+    assert_eq!(c.diagnostics().active_overlapping, 1);
+    assert_eq!(c.alpha_overlapping(1), [0.0; 3]);
+    assert!(c.alpha_sum().iter().all(|a| a.is_finite()));
+    // And a cell where every λ is zero falls back.
+    let mut zero = CellAccumulator::new(ComponentLayout::new(1, 1).unwrap(), ColorMode::Rgb);
+    for _ in 0..100 {
+        zero.add(
+            1.0,
+            [0.3; 3],
+            &CvSample {
+                pdf: 1.0,
+                partition: Some((0, 0.0)),
+                overlapping: &[0.0],
+            },
+        )
+        .unwrap();
+    }
+    let c = solve(&zero, &SolvePolicy::default());
+    assert_eq!(
+        c.diagnostics().status,
+        SolveStatus::Fallback(FallbackReason::NoActiveComponents)
+    );
+    assert_eq!(zero.sampled_partitions(), 0);
+}
+
+#[test]
+fn duplicate_collinear_components_stay_finite_and_no_worse() {
+    // The same pdf listed twice: the system is singular without the ridge.
+    let setup = Setup {
+        comps: vec![Pdf::Uniform, Pdf::Linear, Pdf::Linear],
+        select: vec![0.4, 0.3, 0.3],
+        partitioned: false,
+        f: poly,
+    };
+    let coeffs = setup.train(2048, 31, ColorMode::Rgb, &SolvePolicy::default());
+    assert_eq!(coeffs.diagnostics().status, SolveStatus::Solved);
+    let a1 = coeffs.alpha_overlapping(1);
+    let a2 = coeffs.alpha_overlapping(2);
+    for c in 0..3 {
+        assert!(
+            (a1[c] - a2[c]).abs() <= 1e-6 * a1[c].abs().max(1e-3),
+            "duplicates share the weight: {a1:?} {a2:?}"
+        );
+    }
+    let (_, v) = mean_var(&setup.estimates(&coeffs, 20_000, 32));
+    let (_, v_pl) = mean_var(&setup.estimates(&plain(&setup), 20_000, 32));
+    assert!(sum3(v) <= 1.05 * sum3(v_pl));
+    // Without regularisation the exact singularity is detected, never NaN.
+    let strict = SolvePolicy {
+        ridge: 0.0,
+        ..SolvePolicy::default()
+    };
+    let c = setup.train(2048, 31, ColorMode::Rgb, &strict);
+    assert!(c.alpha_sum().iter().all(|a| a.is_finite()));
+    if let SolveStatus::Fallback(r) = c.diagnostics().status {
+        assert!(
+            matches!(
+                r,
+                FallbackReason::IllConditioned | FallbackReason::NotPositiveDefinite
+            ),
+            "{r:?}"
+        );
+    }
+}
+
+#[test]
+fn single_component_reproduces_plain_estimate() {
+    // One component equal to the sampling pdf: λ/p = 1, so F − α + α = F exactly.
+    let setup = Setup {
+        comps: vec![Pdf::Linear],
+        select: vec![1.0],
+        partitioned: false,
+        f: poly,
+    };
+    let coeffs = setup.train(256, 41, ColorMode::Rgb, &SolvePolicy::default());
+    assert_eq!(coeffs.diagnostics().status, SolveStatus::Solved);
+    let cv = setup.estimates(&coeffs, 100, 42);
+    let pl = setup.estimates(&plain(&setup), 100, 42);
+    for (a, b) in cv.iter().zip(&pl) {
+        for c in 0..3 {
+            assert!((a[c] - b[c]).abs() < 1e-12 * (1.0 + b[c].abs()));
+        }
+    }
+}
+
+#[test]
+fn partition_never_sampled_gets_zero_alpha() {
+    let setup = Setup {
+        comps: vec![Pdf::Box(0.0, 0.5), Pdf::Box(0.5, 1.0)],
+        select: vec![1.0, 0.0],
+        partitioned: true,
+        f: poly,
+    };
+    // Only partition 0 is ever sampled; partitions 2..5 of the layout do not exist in the data.
+    let mut rng = Pcg64::seed_from_u64(51);
+    let mut acc = CellAccumulator::new(ComponentLayout::new(6, 1).unwrap(), ColorMode::Rgb);
+    for _ in 0..300 {
+        let d = setup.draw(&mut rng);
+        let lam = [1.0];
+        acc.add(
+            1.0,
+            d.value,
+            &CvSample {
+                pdf: d.pdf,
+                partition: Some((0, d.lambdas[0])),
+                overlapping: &lam,
+            },
+        )
+        .unwrap();
+    }
+    assert_eq!(acc.sampled_partitions(), 1);
+    let c = solve(&acc, &SolvePolicy::default());
+    assert_eq!(c.diagnostics().status, SolveStatus::Solved);
+    for id in 1..6 {
+        assert_eq!(c.alpha_partition(id), [0.0; 3]);
+    }
+    assert!(c.alpha_sum().iter().all(|a| a.is_finite()));
+    let d = solve_dense(&acc, &SolvePolicy::default());
+    assert!(max_rel_diff(&c, &d, acc.layout()) < 1e-9);
+}
+
+#[test]
+fn extreme_magnitudes_scale_coefficients_exactly() {
+    // Scaling f by s scales α by s; scaling every density by t leaves α unchanged.
+    let base = random_cell(20, 3, 3000, 61, ColorMode::Rgb);
+    let reference = solve(&base, &SolvePolicy::default());
+    for (fs, ps) in [
+        (1e-30, 1.0),
+        (1e30, 1.0),
+        (1.0, 1e-30),
+        (1.0, 1e30),
+        (1e30, 1e-30),
+        (1e-30, 1e30),
+    ] {
+        let mut rng = Pcg64::seed_from_u64(61);
+        let mut acc = CellAccumulator::new(base.layout(), ColorMode::Rgb);
+        let mut lam = [0.0; 3];
+        for _ in 0..3000 {
+            // Same random stream as random_cell, with scaled values and densities.
+            for l in lam.iter_mut() {
+                *l = if rng.random::<f64>() < 0.2 {
+                    0.0
+                } else {
+                    rng.random::<f64>() * 3.0
+                };
+            }
+            let part = (rng.random::<f64>() < 0.9)
+                .then(|| (rng.random_range(0..20u32), rng.random::<f64>() * 5.0 + 0.01));
+            let pdf = lam.iter().sum::<f64>() * 0.5 + part.map_or(0.0, |q| q.1) * 0.5 + 0.1;
+            let w = rng.random::<f64>() + 0.1;
+            let v = [
+                rng.random::<f64>(),
+                rng.random::<f64>() * 2.0,
+                rng.random::<f64>() - 0.5,
+            ];
+            let lam_s = lam.map(|l| l * ps);
+            let smp = CvSample {
+                pdf: pdf * ps,
+                partition: part.map(|(k, l)| (k, l * ps)),
+                overlapping: &lam_s,
+            };
+            acc.add(w, v.map(|x| x * fs), &smp).unwrap();
+        }
+        let c = solve(&acc, &SolvePolicy::default());
+        assert_eq!(c.diagnostics().status, SolveStatus::Solved, "f×{fs} p×{ps}");
+        for id in 0..20 {
+            let (a, r) = (c.alpha_partition(id), reference.alpha_partition(id));
+            for ch in 0..3 {
+                assert!(
+                    (a[ch] / fs - r[ch]).abs() <= 1e-9 * r[ch].abs().max(1e-6),
+                    "f×{fs} p×{ps}: {} vs {}",
+                    a[ch] / fs,
+                    r[ch]
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn nan_and_inf_samples_are_rejected_counted_and_never_merged() {
+    let layout = ComponentLayout::new(3, 2).unwrap();
+    let mut clean = CellAccumulator::new(layout, ColorMode::Rgb);
+    let mut dirty = CellAccumulator::new(layout, ColorMode::Rgb);
+    let good = CvSample {
+        pdf: 2.0,
+        partition: Some((1, 1.5)),
+        overlapping: &[0.5, 1.0],
+    };
+    clean.add(1.0, [1.0, 2.0, 3.0], &good).unwrap();
+    dirty.add(1.0, [1.0, 2.0, 3.0], &good).unwrap();
+    let nan = f64::NAN;
+    let inf = f64::INFINITY;
+    let nan_lam = [nan, 1.0];
+    let bad: Vec<(f64, [f64; 3], CvSample<'_>)> = vec![
+        (1.0, [nan, 0.0, 0.0], good),
+        (1.0, [0.0, inf, 0.0], good),
+        (nan, [1.0; 3], good),
+        (inf, [1.0; 3], good),
+        (-1.0, [1.0; 3], good),
+        (1.0, [1.0; 3], CvSample { pdf: nan, ..good }),
+        (1.0, [1.0; 3], CvSample { pdf: 0.0, ..good }),
+        (1.0, [1.0; 3], CvSample { pdf: -1.0, ..good }),
+        (
+            1.0,
+            [1.0; 3],
+            CvSample {
+                partition: Some((1, nan)),
+                ..good
+            },
+        ),
+        (
+            1.0,
+            [1.0; 3],
+            CvSample {
+                partition: Some((1, inf)),
+                ..good
+            },
+        ),
+        (
+            1.0,
+            [1.0; 3],
+            CvSample {
+                partition: Some((3, 1.0)),
+                ..good
+            },
+        ),
+        (
+            1.0,
+            [1.0; 3],
+            CvSample {
+                overlapping: &nan_lam,
+                ..good
+            },
+        ),
+        (
+            1.0,
+            [1.0; 3],
+            CvSample {
+                overlapping: &[1.0],
+                ..good
+            },
+        ),
+        // Finite inputs whose products overflow.
+        (
+            1e300,
+            [1e300; 3],
+            CvSample {
+                pdf: 1e-300,
+                ..good
+            },
+        ),
+    ];
+    for (i, (w, v, s)) in bad.iter().enumerate() {
+        assert!(dirty.add(*w, *v, s).is_err(), "bad sample {i} accepted");
+    }
+    assert_eq!(dirty.rejected(), bad.len() as u64);
+    assert_eq!(dirty.samples(), 1);
+    // Identical sums: the encodings differ only in the rejected counter.
+    let mut dirty_enc = dirty.encode();
+    let clean_enc = clean.encode();
+    let rejected_at = 4 + 2 + 1 + 1 + 4 + 4 + 8;
+    dirty_enc[rejected_at..rejected_at + 8].copy_from_slice(&0u64.to_le_bytes());
+    assert_eq!(dirty_enc, clean_enc);
+    // f32 entry point rejects too.
+    assert!(
+        dirty
+            .add_f32(1.0, [f32::NAN, 0.0, 0.0], 1.0, None, &[1.0, 1.0])
+            .is_err()
+    );
+    assert!(dirty.add_f32(1.0, [0.0; 3], 1.0, None, &[1.0; 65]).is_err());
+}
+
+#[test]
+fn zero_surrogate_gives_finite_weights() {
+    assert_eq!(training_weight(2.0, None), 4.0);
+    assert!((training_weight(1.0, Some(0.0)) - 1e4).abs() < 1e-8);
+    assert!((training_weight(1.0, Some(1.0)) - 1.0 / 1.0201).abs() < 1e-12);
+    for s in [f64::NAN, -3.0, f64::INFINITY, f64::NEG_INFINITY] {
+        let w = training_weight(0.5, Some(s));
+        assert!(w.is_finite() && w >= 0.0, "surrogate {s} → {w}");
+    }
+    // A relative-variance cell whose surrogate is black still solves to finite α.
+    let setup = three_overlapping(poly);
+    let mut rng = Pcg64::seed_from_u64(71);
+    let mut acc = CellAccumulator::new(setup.layout(), ColorMode::Rgb);
+    for i in 0..500 {
+        let d = setup.draw(&mut rng);
+        let surrogate = if i % 2 == 0 { 0.0 } else { 0.7 };
+        acc.add(
+            training_weight(1.0, Some(surrogate)),
+            d.value,
+            &setup.sample_view(&d),
+        )
+        .unwrap();
+    }
+    let c = solve(&acc, &SolvePolicy::default());
+    assert_eq!(c.diagnostics().status, SolveStatus::Solved);
+    assert!(c.alpha_sum().iter().all(|a| a.is_finite()));
+}
+
+#[test]
+fn empty_cell_falls_back_to_plain_estimator() {
+    let acc = CellAccumulator::new(ComponentLayout::new(4, 2).unwrap(), ColorMode::Rgb);
+    for c in [
+        solve(&acc, &SolvePolicy::default()),
+        solve_dense(&acc, &SolvePolicy::default()),
+    ] {
+        assert_eq!(
+            c.diagnostics().status,
+            SolveStatus::Fallback(FallbackReason::Empty)
+        );
+        assert_eq!(c.alpha_sum(), [0.0; 3]);
+        let s = CvSample {
+            pdf: 1.0,
+            partition: Some((2, 3.0)),
+            overlapping: &[1.0, 2.0],
+        };
+        assert_eq!(c.apply([0.5, 0.25, 1.0], &s), [0.5, 0.25, 1.0]);
+    }
+}
+
+#[test]
+fn too_few_samples_fall_back() {
+    let setup = three_overlapping(poly);
+    let c = setup.train(10, 1, ColorMode::Rgb, &SolvePolicy::default());
+    assert_eq!(
+        c.diagnostics().status,
+        SolveStatus::Fallback(FallbackReason::TooFewSamples)
+    );
+    // One huge weight dominates: effective sample count ≈ 1.
+    let mut rng = Pcg64::seed_from_u64(2);
+    let mut acc = CellAccumulator::new(setup.layout(), ColorMode::Rgb);
+    for i in 0..100 {
+        let d = setup.draw(&mut rng);
+        acc.add(
+            if i == 0 { 1e12 } else { 1.0 },
+            d.value,
+            &setup.sample_view(&d),
+        )
+        .unwrap();
+    }
+    assert!(acc.effective_samples() < 1.01);
+    let c = solve(&acc, &SolvePolicy::default());
+    assert_eq!(
+        c.diagnostics().status,
+        SolveStatus::Fallback(FallbackReason::TooFewEffectiveSamples)
+    );
+}
+
+#[test]
+fn f32_inputs_are_accumulated_in_f64() {
+    let layout = ComponentLayout::new(1, 1).unwrap();
+    let mut acc = CellAccumulator::new(layout, ColorMode::Mono);
+    let n = 1_000_000;
+    let mut f32_sum = 0.0f32;
+    for _ in 0..n {
+        acc.add_f32(1.0, [0.1, 0.1, 0.1], 1.0, Some((0, 1.0)), &[1.0])
+            .unwrap();
+        f32_sum += 0.1f32;
+    }
+    let exact = f64::from(0.1f32) * f64::from(n);
+    let b = acc.b_overlapping(0)[0];
+    assert!(
+        (b - exact).abs() < 1e-9 * exact,
+        "f64 accumulation {b} vs {exact}"
+    );
+    // The same sum in f32 drifts by far more: the reason to accumulate in f64.
+    assert!((f64::from(f32_sum) - exact).abs() > 1e-3 * exact);
+    assert_eq!(acc.partition(0).unwrap().count, n as u64);
+}
