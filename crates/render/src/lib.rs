@@ -12,9 +12,17 @@
 //! - [`texture`]: bitmap and checkerboard lookups.
 //! - [`bsdf`]: diffuse, conductor, rough conductor, rough plastic (one file each).
 //! - [`light`]: area lights (meshes, spheres), env map, constant; light selection.
-//! - [`integrator`]: one file per estimator (`path` is the reference integrator).
+//! - [`integrator`]: [`RenderScene`] (prepared scene), [`RenderSettings`], the
+//!   [`Estimator`] enum and one file per estimator (`path` is the reference integrator).
 //! - [`film`]: per-pixel f64 sums, sums of squares, counts and AOVs.
-//! - [`tile`]: tiles, parallel rendering of an image.
+//! - [`tile`]: tiles ([`render_tile`], the farm's unit of work), parallel [`render_image`].
+//!
+//! # Entry points
+//! ```ignore
+//! let settings = RenderSettings { spp: 64, seed: 1, ..RenderSettings::from_scene(&scene) };
+//! let rs = RenderScene::new(&scene, &settings)?;
+//! let (film, stats) = render_image(&rs, &settings, &RenderOptions::default(), &|_, _| {})?;
+//! ```
 //! - [`chi2`]: χ² goodness-of-fit harness used by the sampling tests.
 
 #![deny(missing_docs)]
@@ -30,3 +38,8 @@ pub mod math;
 pub mod sampler;
 pub mod texture;
 pub mod tile;
+
+pub use film::{Film, FilmLayer, Pixel};
+pub use integrator::{Estimator, MisHeuristic, RenderError, RenderScene, RenderSettings};
+pub use light::LightSelection;
+pub use tile::{RenderOptions, RenderStats, TileRect, render_image, render_tile};

@@ -1,1 +1,302 @@
-//! (in progress)
+//! Integrators: the prepared scene ([`RenderScene`]), the per-job settings
+//! ([`RenderSettings`]) and the estimator dispatch ([`Estimator`]).
+//!
+//! # Estimators
+//!
+//! | `estimator.kind` | file | what |
+//! |---|---|---|
+//! | `path` | `path.rs` | reference unidirectional path tracer: NEE + BSDF sampling with MIS (Mitsuba 3 `path`) |
+//!
+//! The CV estimators (DESIGN §4) plug in at the path vertex: [`path::trace`] reports every
+//! vertex as a [`VertexRecord`] carrying both techniques' samples with **every technique's
+//! pdf for every sample** (also zero-contribution samples, [Hua §8]) to a
+//! [`VertexObserver`]. Observers are generic parameters (monomorphised, no trait objects on
+//! the per-sample path); the plain `path` estimator uses [`NoObserver`].
+//!
+//! # Settings
+//!
+//! | name | type | default | meaning |
+//! |---|---|---|---|
+//! | `spp` | u32 | 16 | samples per pixel |
+//! | `seed` | u64 | 0 | job seed (sampler) |
+//! | `max_depth` | i32 | scene's | path segments incl. the camera ray; 1 = emitters seen directly, 2 = direct lighting, −1 = unbounded |
+//! | `rr_depth` | i32 | scene's | vertex count from which Russian roulette applies (Mitsuba) |
+//! | `hide_emitters` | bool | scene's | directly visible emitters are skipped (area lights) or black (env) |
+//! | `mis` | `power` \| `balance` | `power` | MIS heuristic for NEE vs BSDF sampling |
+//! | `light_selection` | `uniform` \| `power` | `uniform` | how NEE picks an emitter |
+//!
+//! ```json
+//! { "spp": 256, "seed": 7, "max_depth": 5, "rr_depth": 6, "mis": "power" }
+//! ```
+
+pub mod path;
+
+use glam::Vec3;
+use thiserror::Error;
+
+use crate::accel::Accel;
+use crate::bsdf::MaterialTable;
+use crate::camera::Camera;
+use crate::light::{LightSelection, Lights};
+
+/// The estimator a job renders with (closed set; dispatched with `match`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Estimator {
+    /// The reference NEE + BSDF MIS path tracer.
+    #[default]
+    Path,
+}
+
+/// MIS heuristic combining light and BSDF sampling.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum MisHeuristic {
+    /// Power heuristic, β = 2 (Mitsuba's choice).
+    #[default]
+    Power,
+    /// Balance heuristic.
+    Balance,
+}
+
+impl MisHeuristic {
+    /// Weight of technique `a` against `b` (one sample each).
+    #[inline]
+    pub fn weight(self, pdf_a: f32, pdf_b: f32) -> f32 {
+        match self {
+            MisHeuristic::Power => estimators::mis::power(pdf_a, pdf_b),
+            MisHeuristic::Balance => estimators::mis::balance(pdf_a, pdf_b),
+        }
+    }
+}
+
+/// Per-job render settings (see the module docs for the table).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RenderSettings {
+    /// Samples per pixel.
+    pub spp: u32,
+    /// Job seed.
+    pub seed: u64,
+    /// Max path segments incl. the camera ray; −1 = unbounded.
+    pub max_depth: i32,
+    /// Depth from which Russian roulette applies.
+    pub rr_depth: i32,
+    /// Hide directly visible emitters.
+    pub hide_emitters: bool,
+    /// MIS heuristic.
+    pub mis: MisHeuristic,
+    /// Light selection for NEE.
+    pub light_selection: LightSelection,
+    /// Estimator.
+    pub estimator: Estimator,
+}
+
+impl RenderSettings {
+    /// Default samples per pixel when neither scene nor job says.
+    pub const DEFAULT_SPP: u32 = 16;
+
+    /// Settings from the scene's integrator block (path lengths, `hide_emitters`), with
+    /// `spp = 16`, seed 0, power heuristic, uniform light selection, `path` estimator.
+    /// Override fields with struct update syntax.
+    pub fn from_scene(scene: &scene::Scene) -> Self {
+        Self {
+            spp: Self::DEFAULT_SPP,
+            seed: 0,
+            max_depth: scene.integrator.max_depth,
+            rr_depth: scene.integrator.rr_depth,
+            hide_emitters: scene.integrator.hide_emitters,
+            mis: MisHeuristic::Power,
+            light_selection: LightSelection::Uniform,
+            estimator: Estimator::Path,
+        }
+    }
+
+    /// Checks the settings.
+    pub fn validate(&self) -> Result<(), RenderError> {
+        if self.max_depth < -1 || self.max_depth == 0 {
+            return Err(RenderError::InvalidSetting {
+                field: "max_depth",
+                reason: "must be −1 or ≥ 1",
+            });
+        }
+        if self.rr_depth < 1 {
+            return Err(RenderError::InvalidSetting {
+                field: "rr_depth",
+                reason: "must be ≥ 1",
+            });
+        }
+        Ok(())
+    }
+
+    /// `max_depth` as an unsigned bound (−1 ⇒ `u32::MAX`).
+    #[inline]
+    pub fn max_depth_u32(&self) -> u32 {
+        if self.max_depth < 0 {
+            u32::MAX
+        } else {
+            self.max_depth as u32
+        }
+    }
+}
+
+/// Errors of scene preparation and rendering.
+#[derive(Debug, Error, PartialEq)]
+pub enum RenderError {
+    /// A setting is out of range.
+    #[error("invalid render setting `{field}`: {reason}")]
+    InvalidSetting {
+        /// Field name.
+        field: &'static str,
+        /// What is wrong.
+        reason: &'static str,
+    },
+    /// The film has no pixels.
+    #[error("film has zero size ({width}×{height})")]
+    EmptyFilm {
+        /// Width.
+        width: u32,
+        /// Height.
+        height: u32,
+    },
+    /// A tile lies (partly) outside the image.
+    #[error("tile {x0},{y0} {width}×{height} is outside the {image_width}×{image_height} image")]
+    TileOutOfBounds {
+        /// Tile left.
+        x0: u32,
+        /// Tile top.
+        y0: u32,
+        /// Tile width.
+        width: u32,
+        /// Tile height.
+        height: u32,
+        /// Image width.
+        image_width: u32,
+        /// Image height.
+        image_height: u32,
+    },
+    /// The thread pool could not be created.
+    #[error("thread pool: {0}")]
+    ThreadPool(String),
+}
+
+/// A scene prepared for rendering: BVH, materials, lights, camera.
+///
+/// Built once per (scene, light selection) and shared read-only by all threads.
+pub struct RenderScene {
+    /// Ray–scene intersection.
+    pub accel: Accel,
+    /// Per-material BSDF data.
+    pub materials: MaterialTable,
+    /// Emitters and their sampling structures.
+    pub lights: Lights,
+    /// The camera.
+    pub camera: Camera,
+    /// Image width.
+    pub width: u32,
+    /// Image height.
+    pub height: u32,
+}
+
+impl std::fmt::Debug for RenderScene {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("RenderScene")
+            .field("width", &self.width)
+            .field("height", &self.height)
+            .field("primitives", &self.accel.primitive_count())
+            .field("lights", &self.lights.len())
+            .finish_non_exhaustive()
+    }
+}
+
+impl RenderScene {
+    /// Prepares `scene` for rendering with `settings` (which choose the light selection).
+    pub fn new(scene: &scene::Scene, settings: &RenderSettings) -> Result<Self, RenderError> {
+        settings.validate()?;
+        let (width, height) = (scene.film.width, scene.film.height);
+        if width == 0 || height == 0 {
+            return Err(RenderError::EmptyFilm { width, height });
+        }
+        let lights = Lights::new(scene, settings.light_selection);
+        let mesh_lights: Vec<Option<u32>> = (0..scene.meshes.len())
+            .map(|i| lights.mesh_light(i))
+            .collect();
+        let sphere_lights: Vec<Option<u32>> = (0..scene.spheres.len())
+            .map(|i| lights.sphere_light(i))
+            .collect();
+        let accel = Accel::new(scene, &mesh_lights, &sphere_lights);
+        let materials = MaterialTable::new(&scene.materials, &scene.textures);
+        let camera = Camera::new(&scene.camera, &scene.film);
+        Ok(Self {
+            accel,
+            materials,
+            lights,
+            camera,
+            width,
+            height,
+        })
+    }
+}
+
+/// One technique's sample at a vertex: NEE ([`LightTechnique`]) or BSDF ([`BsdfTechnique`]).
+/// Pdfs are solid-angle densities at the vertex; light pdfs include the selection pmf.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LightTechnique {
+    /// Light chosen.
+    pub light: u32,
+    /// World direction towards the light.
+    pub wi: Vec3,
+    /// Light-sampling pdf of `wi` (incl. selection).
+    pub pdf_light: f32,
+    /// BSDF-sampling pdf of `wi`.
+    pub pdf_bsdf: f32,
+    /// `f·|cos θ|·Le·V` (not divided by any pdf, not MIS-weighted); zero if occluded.
+    pub value: Vec3,
+}
+
+/// The BSDF-sampled direction at a vertex and what it found.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BsdfTechnique {
+    /// World direction.
+    pub wi: Vec3,
+    /// BSDF-sampling pdf of `wi` (for a delta lobe: the lobe's probability).
+    pub pdf_bsdf: f32,
+    /// Light-sampling pdf of `wi` (incl. selection) for the emitter it hit; 0 if none.
+    pub pdf_light: f32,
+    /// `f·|cos θ|/pdf_bsdf` (the throughput factor).
+    pub weight: Vec3,
+    /// Radiance emitted towards the vertex by what `wi` hit (0 if nothing emits).
+    pub emitted: Vec3,
+    /// Whether a delta lobe produced `wi`.
+    pub delta: bool,
+    /// Whether the continuation ray was traced (false when Russian roulette ended the path
+    /// first; then `emitted` and `pdf_light` are unknown and left at 0).
+    pub traced: bool,
+}
+
+/// Everything a CV estimator needs at one path vertex.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct VertexRecord {
+    /// Vertex index (0 = camera hit).
+    pub depth: u32,
+    /// Position.
+    pub p: Vec3,
+    /// Shading normal.
+    pub ns: Vec3,
+    /// Path throughput up to (excluding) this vertex's scattering.
+    pub throughput: Vec3,
+    /// The NEE sample, if one was drawn (non-delta BSDF, lights present, sample valid).
+    pub light: Option<LightTechnique>,
+    /// The BSDF sample, if valid (when the path continues, it continues along it).
+    pub bsdf: Option<BsdfTechnique>,
+}
+
+/// Receives every path vertex (static dispatch).
+pub trait VertexObserver {
+    /// Called once per scattering vertex after both techniques were evaluated.
+    #[inline]
+    fn vertex(&mut self, _record: &VertexRecord) {}
+}
+
+/// The observer of the plain `path` estimator: ignores vertices.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct NoObserver;
+
+impl VertexObserver for NoObserver {}

@@ -1,0 +1,288 @@
+//! `path` — the reference estimator: unidirectional path tracing with next-event estimation
+//! (one light sample per vertex) and BSDF sampling, combined by MIS. It estimates exactly
+//! what Mitsuba 3's `path` integrator estimates, and is the baseline of every speedup.
+//!
+//! | parameter | meaning |
+//! |---|---|
+//! | `max_depth` | path segments incl. the camera ray (1: emitters seen directly, 2: direct lighting, −1: unbounded) |
+//! | `rr_depth` | Russian roulette from this many scattering vertices on |
+//! | `hide_emitters` | camera rays pass through area emitters; the env is black when seen directly |
+//! | `mis` | `power` (default, Mitsuba) or `balance` |
+//!
+//! ```json
+//! { "estimator": { "kind": "path" }, "max_depth": 5, "rr_depth": 5, "mis": "power" }
+//! ```
+//!
+//! Per vertex (Mitsuba 3 `path.cpp`, in the same order):
+//! 1. emission of the surface/env reached by the previous BSDF sample, weighted
+//!    `w_bsdf = mis(p_bsdf, p_light)` (1 after a delta lobe or at the camera hit);
+//! 2. if the vertex may scatter (`depth + 1 < max_depth`): NEE unless the BSDF is purely
+//!    delta — `f·Le·V·w_light / p_light` with `w_light = mis(p_light, p_bsdf)`, `p_light`
+//!    including the selection pmf;
+//! 3. BSDF sample, throughput `β *= f·cos/p`;
+//! 4. Russian roulette once `depth ≥ rr_depth`: continue with `q = min(max β·η², 0.95)`,
+//!    `β /= q` (η = 1: no BSDF here transmits); stop when `β` is zero.
+//!
+//! Pdfs are solid-angle densities at the shading point.
+//!
+//! Sampler dimensions: 0–1 pixel position; vertex `k` uses the 7 dimensions from
+//! `2 + 7k`: light selection (1), light position (2), BSDF lobe (1), BSDF direction (2),
+//! roulette (1) — fixed whether a technique runs or not.
+
+use glam::{Vec2, Vec3};
+
+use super::{
+    BsdfTechnique, LightTechnique, RenderScene, RenderSettings, VertexObserver, VertexRecord,
+};
+use crate::math::{Frame, Ray};
+use crate::sampler::Sampler;
+
+/// Sampler dimensions used by the camera (pixel position).
+pub const CAMERA_DIMS: u32 = 2;
+/// Sampler dimensions per path vertex.
+pub const DIMS_PER_VERTEX: u32 = 7;
+/// Most emitters a camera ray passes through with `hide_emitters` before giving up.
+const MAX_HIDDEN_EMITTERS: u32 = 64;
+
+/// The result of one camera path.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct PathSample {
+    /// Radiance estimate.
+    pub radiance: Vec3,
+    /// First-hit albedo AOV (zero on a miss).
+    pub albedo: Vec3,
+    /// First-hit shading normal AOV (zero on a miss).
+    pub normal: Vec3,
+    /// Rays traced (camera, shadow and continuation rays).
+    pub rays: u32,
+}
+
+/// The first dimension of vertex `depth`.
+#[inline]
+pub fn vertex_dimension(depth: u32) -> u32 {
+    CAMERA_DIMS.saturating_add(depth.saturating_mul(DIMS_PER_VERTEX))
+}
+
+/// Traces one camera path starting with `camera_ray` (unit direction), reporting each
+/// scattering vertex to `observer`.
+pub fn trace<O: VertexObserver>(
+    rs: &RenderScene,
+    st: &RenderSettings,
+    camera_ray: Ray,
+    sampler: &mut Sampler,
+    observer: &mut O,
+) -> PathSample {
+    let max_depth = st.max_depth_u32();
+    let lights = &rs.lights;
+    let mut out = PathSample {
+        rays: 1,
+        ..PathSample::default()
+    };
+    let mut ray = camera_ray;
+    let mut hit = rs.accel.intersect(&ray);
+
+    if st.hide_emitters {
+        // Mitsuba's `skip_area_emitters`: camera rays pass through area lights.
+        let mut skipped = 0;
+        while let Some(h) = hit {
+            if h.light.is_none() || skipped >= MAX_HIDDEN_EMITTERS {
+                break;
+            }
+            ray = Ray {
+                o: h.offset_origin(ray.d),
+                d: ray.d,
+                t_max: ray.t_max - h.t,
+            };
+            hit = rs.accel.intersect(&ray);
+            out.rays += 1;
+            skipped += 1;
+        }
+    }
+
+    let mut radiance = Vec3::ZERO;
+    let Some(mut h) = hit else {
+        if !st.hide_emitters {
+            radiance += lights.env_radiance(ray.d);
+        }
+        out.radiance = radiance;
+        return out;
+    };
+    if let Some(l) = h.light {
+        // Camera hit: no MIS (the previous "BSDF" is a delta, Mitsuba's prev_bsdf_delta = true).
+        radiance += lights.area_radiance(l, h.ns, -ray.d);
+    }
+
+    let mut beta = Vec3::ONE;
+    let mut depth = 0u32;
+    loop {
+        let bsdf = rs.materials.bsdf(h.material, h.uv);
+        if depth == 0 {
+            out.albedo = bsdf.albedo();
+            out.normal = h.ns;
+        }
+        if depth.saturating_add(1) >= max_depth {
+            break;
+        }
+        let frame = Frame::from_normal(h.ns);
+        let wo = frame.to_local(-ray.d);
+
+        sampler.set_dimension(vertex_dimension(depth));
+        let u_select = sampler.next_1d();
+        let u_light = sampler.next_2d();
+        let u_lobe = sampler.next_1d();
+        let u_bsdf = sampler.next_2d();
+        let u_rr = sampler.next_1d();
+
+        // ---- emitter sampling (NEE) ----
+        let mut light_tech = None;
+        if !bsdf.is_delta() && !lights.is_empty() {
+            if let Some(ls) = lights.sample(h.p, u_select, u_light) {
+                if ls.pdf > 0.0 && ls.pdf.is_finite() {
+                    let wi_local = frame.to_local(ls.wi);
+                    let f = bsdf.eval(wo, wi_local);
+                    let pdf_bsdf = bsdf.pdf(wo, wi_local);
+                    let mut value = Vec3::ZERO;
+                    if f != Vec3::ZERO && ls.radiance != Vec3::ZERO {
+                        let shadow = if ls.dist.is_finite() {
+                            h.spawn_ray_to(h.p + ls.wi * ls.dist)
+                        } else {
+                            h.spawn_ray(ls.wi)
+                        };
+                        out.rays += 1;
+                        if !rs.accel.occluded(shadow.o, shadow.d, shadow.t_max) {
+                            value = f * ls.radiance;
+                        }
+                    }
+                    if value != Vec3::ZERO {
+                        let w = if ls.delta {
+                            1.0
+                        } else {
+                            st.mis.weight(ls.pdf, pdf_bsdf)
+                        };
+                        radiance += beta * value * (w / ls.pdf);
+                    }
+                    light_tech = Some(LightTechnique {
+                        light: ls.light,
+                        wi: ls.wi,
+                        pdf_light: ls.pdf,
+                        pdf_bsdf,
+                        value,
+                    });
+                }
+            }
+        }
+
+        // ---- BSDF sampling ----
+        let Some(bs) = bsdf.sample(wo, u_lobe, u_bsdf) else {
+            observer.vertex(&VertexRecord {
+                depth,
+                p: h.p,
+                ns: h.ns,
+                throughput: beta,
+                light: light_tech,
+                bsdf: None,
+            });
+            break;
+        };
+        let wi = frame.to_world(bs.wi);
+        let throughput = beta;
+        beta *= bs.weight;
+
+        // ---- Russian roulette (before tracing, as Mitsuba) ----
+        depth += 1;
+        let beta_max = beta.max_element();
+        let mut alive = beta_max > 0.0 && beta.is_finite();
+        if alive && depth as i64 >= i64::from(st.rr_depth) {
+            let q = beta_max.min(0.95);
+            if u_rr < q {
+                beta /= q;
+            } else {
+                alive = false;
+            }
+        }
+
+        let mut tech = BsdfTechnique {
+            wi,
+            pdf_bsdf: bs.pdf,
+            pdf_light: 0.0,
+            weight: bs.weight,
+            emitted: Vec3::ZERO,
+            delta: bs.delta,
+            traced: false,
+        };
+        if !alive {
+            observer.vertex(&VertexRecord {
+                depth: depth - 1,
+                p: h.p,
+                ns: h.ns,
+                throughput,
+                light: light_tech,
+                bsdf: Some(tech),
+            });
+            break;
+        }
+
+        // ---- trace the continuation ray; emission found by BSDF sampling ----
+        ray = h.spawn_ray(wi);
+        out.rays += 1;
+        let next = rs.accel.intersect(&ray);
+        tech.traced = true;
+        match &next {
+            None => {
+                tech.emitted = lights.env_radiance(wi);
+                if !bs.delta && tech.emitted != Vec3::ZERO {
+                    if let Some(l) = lights.env_light() {
+                        tech.pdf_light = lights.selection_pmf(l) * lights.pdf_env(wi);
+                    }
+                }
+            }
+            Some(n) => {
+                if let Some(l) = n.light {
+                    tech.emitted = lights.area_radiance(l, n.ns, -wi);
+                    if !bs.delta {
+                        tech.pdf_light =
+                            lights.selection_pmf(l) * lights.pdf_area(l, h.p, n.p, n.ns);
+                    }
+                }
+            }
+        }
+        if tech.emitted != Vec3::ZERO {
+            let w = if bs.delta {
+                1.0
+            } else {
+                st.mis.weight(bs.pdf, tech.pdf_light)
+            };
+            radiance += beta * tech.emitted * w;
+        }
+        observer.vertex(&VertexRecord {
+            depth: depth - 1,
+            p: h.p,
+            ns: h.ns,
+            throughput,
+            light: light_tech,
+            bsdf: Some(tech),
+        });
+        match next {
+            Some(n) => h = n,
+            None => break,
+        }
+    }
+    out.radiance = radiance;
+    out
+}
+
+/// One sample of pixel `(x, y)`: camera ray through a uniformly sampled point of the pixel,
+/// then [`trace`] with the plain observer.
+#[inline]
+pub fn sample_pixel(
+    rs: &RenderScene,
+    st: &RenderSettings,
+    x: u32,
+    y: u32,
+    sample_index: u32,
+) -> PathSample {
+    let mut sampler = Sampler::new(st.seed, y * rs.width + x, sample_index);
+    let u = sampler.next_2d();
+    let ray = rs.camera.ray(Vec2::new(x as f32 + u.x, y as f32 + u.y));
+    trace(rs, st, ray, &mut sampler, &mut super::NoObserver)
+}
