@@ -715,13 +715,25 @@ impl CellAccumulator {
     }
 }
 
-struct Reader<'a> {
+pub(crate) struct Reader<'a> {
     bytes: &'a [u8],
     pos: usize,
 }
 
 impl<'a> Reader<'a> {
-    fn take(&mut self, n: usize) -> Result<&'a [u8], CellError> {
+    pub(crate) fn new(bytes: &'a [u8]) -> Self {
+        Self { bytes, pos: 0 }
+    }
+    pub(crate) fn at_end(&self) -> bool {
+        self.pos == self.bytes.len()
+    }
+    pub(crate) fn remaining(&self) -> usize {
+        self.bytes.len() - self.pos
+    }
+    pub(crate) fn pos(&self) -> usize {
+        self.pos
+    }
+    pub(crate) fn take(&mut self, n: usize) -> Result<&'a [u8], CellError> {
         let end = self.pos.checked_add(n).filter(|&e| e <= self.bytes.len());
         match end {
             Some(e) => {
@@ -741,19 +753,19 @@ impl<'a> Reader<'a> {
         a.copy_from_slice(s);
         Ok(a)
     }
-    fn u8(&mut self) -> Result<u8, CellError> {
+    pub(crate) fn u8(&mut self) -> Result<u8, CellError> {
         Ok(self.array::<1>()?[0])
     }
-    fn u16(&mut self) -> Result<u16, CellError> {
+    pub(crate) fn u16(&mut self) -> Result<u16, CellError> {
         Ok(u16::from_le_bytes(self.array()?))
     }
-    fn u32(&mut self) -> Result<u32, CellError> {
+    pub(crate) fn u32(&mut self) -> Result<u32, CellError> {
         Ok(u32::from_le_bytes(self.array()?))
     }
-    fn u64(&mut self) -> Result<u64, CellError> {
+    pub(crate) fn u64(&mut self) -> Result<u64, CellError> {
         Ok(u64::from_le_bytes(self.array()?))
     }
-    fn finite_f64(&mut self) -> Result<f64, CellError> {
+    pub(crate) fn finite_f64(&mut self) -> Result<f64, CellError> {
         let at = self.pos;
         let v = f64::from_le_bytes(self.array()?);
         if v.is_finite() {
@@ -762,7 +774,7 @@ impl<'a> Reader<'a> {
             Err(CellError::InvalidValue(at))
         }
     }
-    fn nonneg_f64(&mut self) -> Result<f64, CellError> {
+    pub(crate) fn nonneg_f64(&mut self) -> Result<f64, CellError> {
         let at = self.pos;
         let v = self.finite_f64()?;
         if v >= 0.0 {

@@ -10,6 +10,10 @@
 //!   merge and versioned binary encoding.
 //! - [`solve`]: dense and Schur-complement solvers [Hua eq. 32–33], the policy for hard
 //!   cells, coefficients and their application to samples.
+//! - [`ocv`]: optimizing control variates, penalised least squares per estimate
+//!   [Fan eq. 7–11].
+//! - [`perlight`]: per-light mean-contribution coefficients of the `per_light_cv` baseline
+//!   [Hua §7.2].
 //! - [`metrics`]: relMSE, MSE, efficiency and speedup (DESIGN §6).
 
 #![deny(missing_docs)]
@@ -19,4 +23,6 @@
 pub mod cell;
 pub mod metrics;
 pub mod mis;
+pub mod ocv;
+pub mod perlight;
 pub mod solve;
