@@ -93,12 +93,12 @@ impl RenderSettings {
     /// Default samples per pixel when neither scene nor job says.
     pub const DEFAULT_SPP: u32 = 16;
 
-    /// Settings from the scene's integrator block (path lengths, `hide_emitters`), with
-    /// `spp = 16`, seed 0, power heuristic, uniform light selection, `path` estimator.
+    /// Settings from the scene's integrator block (path lengths, `hide_emitters`, the
+    /// sampler's `sample_count` as spp, else 16), with seed 0, power heuristic, uniform light selection, `path` estimator.
     /// Override fields with struct update syntax.
     pub fn from_scene(scene: &scene::Scene) -> Self {
         Self {
-            spp: Self::DEFAULT_SPP,
+            spp: scene.integrator.sample_count.unwrap_or(Self::DEFAULT_SPP).max(1),
             seed: 0,
             max_depth: scene.integrator.max_depth,
             rr_depth: scene.integrator.rr_depth,

@@ -32,6 +32,7 @@ pub fn empty_scene(to_world: Mat4, fov_x_deg: f32, width: u32, height: u32) -> S
             max_depth: -1,
             rr_depth: 5,
             hide_emitters: false,
+            sample_count: None,
         },
         textures: Vec::new(),
         materials: Vec::new(),
