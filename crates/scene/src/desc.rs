@@ -120,6 +120,11 @@ pub struct FilmDesc {
 /// | `max_depth` | int | 5 | path segments incl. the camera ray: 1 = emitters only, 2 = direct lighting, −1 = unbounded |
 /// | `rr_depth` | int | 5 | depth at which Russian roulette starts |
 /// | `hide_emitters` | bool | false | camera rays that hit an emitter return black |
+/// | `sample_count` | int | none | samples per pixel the scene file asks for (Mitsuba's `<sampler>`); recorded, a job's spp wins |
+///
+/// ```json
+/// "integrator": { "max_depth": 2, "rr_depth": 100, "hide_emitters": false, "sample_count": 64 }
+/// ```
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct IntegratorDesc {
@@ -132,6 +137,9 @@ pub struct IntegratorDesc {
     /// Whether directly visible emitters are hidden.
     #[serde(default)]
     pub hide_emitters: bool,
+    /// Samples per pixel requested by the scene file, if any (informational).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sample_count: Option<u32>,
 }
 
 fn default_max_depth() -> i32 {
@@ -143,7 +151,12 @@ fn default_rr_depth() -> i32 {
 
 impl Default for IntegratorDesc {
     fn default() -> Self {
-        Self { max_depth: default_max_depth(), rr_depth: default_rr_depth(), hide_emitters: false }
+        Self {
+            max_depth: default_max_depth(),
+            rr_depth: default_rr_depth(),
+            hide_emitters: false,
+            sample_count: None,
+        }
     }
 }
 
@@ -233,7 +246,8 @@ pub enum TextureDesc {
         #[serde(default, skip_serializing_if = "Vec::is_empty")]
         uv_transform: TransformDesc,
     },
-    /// Mitsuba's checkerboard: `color0` where ⌊2u⌋+⌊2v⌋ is even… (see the scene crate docs).
+    /// Mitsuba's checkerboard on the transformed (u, v): `color0` where ⌊2u⌋ + ⌊2v⌋ is **odd**
+    /// (exactly one of frac(u), frac(v) exceeds ½), `color1` where it is even.
     Checkerboard {
         /// First colour.
         #[serde(default = "default_checker0")]
@@ -279,7 +293,9 @@ pub enum TextureWrap {
 }
 
 /// Microfacet normal distribution.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[derive(
+    Clone, Copy, Debug, Default, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize,
+)]
 #[serde(rename_all = "snake_case")]
 pub enum Distribution {
     /// Trowbridge–Reitz / GGX (our default, and what the shared Mitsuba scenes use).
@@ -428,7 +444,7 @@ pub struct AreaEmitterDesc {
 ///
 /// | type | own fields |
 /// |---|---|
-/// | `obj` / `ply` | `filename`, `face_normals` (false: use the file's vertex normals when present) |
+/// | `obj` / `ply` | `filename`, `face_normals` (false: use the file's vertex normals, or compute smooth angle-weighted ones when the file has none, as Mitsuba does) |
 /// | `rectangle` | — the square [−1,1]² in the z = 0 plane, normal +Z |
 /// | `cube` | — the cube [−1,1]³ as 12 triangles |
 /// | `sphere` | `center` ([0,0,0]), `radius` (1); analytic, intersected exactly |
@@ -438,7 +454,7 @@ pub struct AreaEmitterDesc {
 /// { "type": "obj", "filename": "meshes/bunny.obj", "material": "gold", "transform": [ { "scale": [2, 2, 2] } ] }
 /// ```
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(try_from = "ShapeRepr")]
 pub struct ShapeDesc {
     /// What the geometry is.
     #[serde(flatten)]
@@ -455,6 +471,103 @@ pub struct ShapeDesc {
     /// Flip the geometric and shading normals (and so which side is the front).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub flip_normals: bool,
+}
+
+/// The flat JSON form of a shape, checked field by field when converted into a [`ShapeDesc`]
+/// (serde cannot combine `flatten` with `deny_unknown_fields`, so unknown keys and keys of
+/// another shape type are rejected here).
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ShapeRepr {
+    #[serde(rename = "type")]
+    kind: String,
+    filename: Option<String>,
+    face_normals: Option<bool>,
+    center: Option<[f32; 3]>,
+    radius: Option<f32>,
+    positions: Option<Vec<[f32; 3]>>,
+    indices: Option<Vec<[u32; 3]>>,
+    normals: Option<Vec<[f32; 3]>>,
+    uvs: Option<Vec<[f32; 2]>>,
+    #[serde(default)]
+    material: Option<MaterialRef>,
+    #[serde(default)]
+    transform: TransformDesc,
+    #[serde(default)]
+    emitter: Option<AreaEmitterDesc>,
+    #[serde(default)]
+    flip_normals: bool,
+}
+
+impl TryFrom<ShapeRepr> for ShapeDesc {
+    type Error = String;
+
+    fn try_from(r: ShapeRepr) -> Result<Self, String> {
+        let kind = r.kind.as_str();
+        let present = [
+            ("filename", r.filename.is_some()),
+            ("face_normals", r.face_normals.is_some()),
+            ("center", r.center.is_some()),
+            ("radius", r.radius.is_some()),
+            ("positions", r.positions.is_some()),
+            ("indices", r.indices.is_some()),
+            ("normals", r.normals.is_some()),
+            ("uvs", r.uvs.is_some()),
+        ];
+        let allowed: &[&str] = match kind {
+            "obj" | "ply" => &["filename", "face_normals"],
+            "rectangle" | "cube" => &[],
+            "sphere" => &["center", "radius"],
+            "mesh" => &["positions", "indices", "normals", "uvs"],
+            _ => {
+                return Err(format!(
+                    "unknown shape type `{kind}` (expected obj, ply, rectangle, cube, sphere or mesh)"
+                ));
+            }
+        };
+        if let Some((field, _)) = present.iter().find(|(f, p)| *p && !allowed.contains(f)) {
+            return Err(format!(
+                "field `{field}` is not allowed for a shape of type `{kind}`"
+            ));
+        }
+        let missing = |f: &str| format!("a shape of type `{kind}` needs `{f}`");
+        let geometry = match kind {
+            "obj" | "ply" => {
+                let filename = r.filename.ok_or_else(|| missing("filename"))?;
+                let face_normals = r.face_normals.unwrap_or(false);
+                if kind == "obj" {
+                    GeometryDesc::Obj {
+                        filename,
+                        face_normals,
+                    }
+                } else {
+                    GeometryDesc::Ply {
+                        filename,
+                        face_normals,
+                    }
+                }
+            }
+            "rectangle" => GeometryDesc::Rectangle,
+            "cube" => GeometryDesc::Cube,
+            "sphere" => GeometryDesc::Sphere {
+                center: r.center.unwrap_or_default(),
+                radius: r.radius.unwrap_or_else(default_radius),
+            },
+            _ => GeometryDesc::Mesh {
+                positions: r.positions.ok_or_else(|| missing("positions"))?,
+                indices: r.indices.ok_or_else(|| missing("indices"))?,
+                normals: r.normals,
+                uvs: r.uvs,
+            },
+        };
+        Ok(ShapeDesc {
+            geometry,
+            material: r.material,
+            transform: r.transform,
+            emitter: r.emitter,
+            flip_normals: r.flip_normals,
+        })
+    }
 }
 
 /// The geometric part of a [`ShapeDesc`].

@@ -66,6 +66,8 @@ pub struct IntegratorSettings {
     pub rr_depth: i32,
     /// Hide directly visible emitters.
     pub hide_emitters: bool,
+    /// Samples per pixel the scene file asks for (informational; jobs choose their own spp).
+    pub sample_count: Option<u32>,
 }
 
 /// A colour parameter: constant linear RGB or a texture lookup.
@@ -99,10 +101,13 @@ pub enum Texture {
         filter: TextureFilter,
         /// Wrap mode.
         wrap: TextureWrap,
-        /// Applied to (u, v, 1) before the lookup (affine 2-D part of the desc transform).
+        /// Applied to (u, v) before the lookup (the desc transform applied to (u, v, 0, 1)).
+        /// Lookup convention (Mitsuba's): u runs along columns left → right, v along rows
+        /// **top → bottom** (v = 0 is the first, top row; OBJ uvs are flipped on load for this).
         uv_transform: glam::Affine2,
     },
-    /// Mitsuba checkerboard.
+    /// Mitsuba checkerboard: with (u, v) = `uv_transform`(uv), `color0` where ⌊2u⌋ + ⌊2v⌋ is
+    /// odd, `color1` where it is even.
     Checkerboard {
         /// First colour.
         color0: Vec3,
