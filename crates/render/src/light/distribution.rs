@@ -64,33 +64,51 @@ impl Distribution1D {
     /// Probability of entry `i` (0 out of range).
     #[inline]
     pub fn pmf(&self, i: usize) -> f32 {
-        match (self.cdf.get(i), self.cdf.get(i + 1)) {
-            (Some(a), Some(b)) => b - a,
-            _ => 0.0,
-        }
+        cdf_pmf(&self.cdf, i)
     }
 
     /// Picks an entry: `(index, pmf, u remapped to [0, 1) within the entry)`.
     #[inline]
     pub fn sample(&self, u: f32) -> (usize, f32, f32) {
-        let u = if u >= 0.0 {
-            u.min(ONE_MINUS_EPSILON)
-        } else {
-            0.0
-        };
-        // First i with cdf[i + 1] > u; since cdf[n] = 1 > u it exists and has a non-zero step.
-        let i = self.cdf[1..]
-            .partition_point(|&c| c <= u)
-            .min(self.len() - 1);
-        let (lo, hi) = (self.cdf[i], self.cdf[i + 1]);
-        let pmf = hi - lo;
-        let remapped = if pmf > 0.0 {
-            ((u - lo) / pmf).clamp(0.0, ONE_MINUS_EPSILON)
-        } else {
-            0.0
-        };
-        (i, pmf, remapped)
+        cdf_sample(&self.cdf, u)
     }
+
+    /// The normalised CDF (`len() + 1` entries), e.g. to pack several into one table.
+    #[inline]
+    pub fn cdf(&self) -> &[f32] {
+        &self.cdf
+    }
+}
+
+/// [`Distribution1D::pmf`] on a bare normalised CDF slice.
+#[inline]
+pub(crate) fn cdf_pmf(cdf: &[f32], i: usize) -> f32 {
+    match (cdf.get(i), cdf.get(i + 1)) {
+        (Some(a), Some(b)) => b - a,
+        _ => 0.0,
+    }
+}
+
+/// [`Distribution1D::sample`] on a bare normalised CDF slice (`cdf[0] = 0`, last = 1,
+/// at least 2 entries).
+#[inline]
+pub(crate) fn cdf_sample(cdf: &[f32], u: f32) -> (usize, f32, f32) {
+    let n = cdf.len() - 1;
+    let u = if u >= 0.0 {
+        u.min(ONE_MINUS_EPSILON)
+    } else {
+        0.0
+    };
+    // First i with cdf[i + 1] > u; since cdf[n] = 1 > u it exists and has a non-zero step.
+    let i = cdf[1..].partition_point(|&c| c <= u).min(n - 1);
+    let (lo, hi) = (cdf[i], cdf[i + 1]);
+    let pmf = hi - lo;
+    let remapped = if pmf > 0.0 {
+        ((u - lo) / pmf).clamp(0.0, ONE_MINUS_EPSILON)
+    } else {
+        0.0
+    };
+    (i, pmf, remapped)
 }
 
 #[cfg(test)]

@@ -47,7 +47,7 @@ use std::f32::consts::PI;
 use glam::{Mat3, Vec2, Vec3};
 
 use super::area::uniform_sphere;
-use super::distribution::Distribution1D;
+use super::distribution::{Distribution1D, cdf_pmf, cdf_sample};
 use super::luminance;
 
 /// A sampled env direction.
@@ -128,6 +128,16 @@ impl EnvLight {
     }
 }
 
+/// Where a direction falls in the lookup grid: column cell `i` (texels `i`, `i+1`), row
+/// band `j` (rows `j`, `j+1`) and the fractions inside them.
+#[derive(Clone, Copy, Debug)]
+struct Coords {
+    i: usize,
+    fx: f32,
+    j: usize,
+    fy: f32,
+}
+
 /// A lat-long environment map with its sampling tables.
 #[derive(Clone, Debug, PartialEq)]
 pub(crate) struct EnvMap {
@@ -147,9 +157,10 @@ pub(crate) struct EnvMap {
     cos_theta: Vec<f32>,
     /// `1 / (Δφ (cos θ_j − cos θ_{j+1}))` of every row band (`rows − 1` entries).
     inv_cell_solid_angle: Vec<f32>,
-    /// Marginal over row bands and one conditional per band (`None` for an all-black band);
-    /// `None` altogether for an all-black map.
-    distribution: Option<(Distribution1D, Vec<Option<Distribution1D>>)>,
+    /// Marginal over row bands, and the conditional CDFs over columns of every band packed
+    /// in one table (`W + 1` entries per band, all 0 for a black band, which the marginal
+    /// never picks); `None` for an all-black map.
+    distribution: Option<(Distribution1D, Vec<f32>)>,
 }
 
 impl EnvMap {
@@ -213,11 +224,7 @@ impl EnvMap {
     }
 
     /// Exact per-cell integrals of the bilinear luminance over solid angle.
-    fn build_distribution(
-        &self,
-        dtheta: f64,
-        dphi: f64,
-    ) -> Option<(Distribution1D, Vec<Option<Distribution1D>>)> {
+    fn build_distribution(&self, dtheta: f64, dphi: f64) -> Option<(Distribution1D, Vec<f32>)> {
         let w = self.width;
         let lum: Vec<f64> = self
             .texels
@@ -226,7 +233,7 @@ impl EnvMap {
             .collect();
         let lum_at = |x: usize, y: usize| lum[y.min(self.height - 1) * w + x % w];
         let mut band_totals = Vec::with_capacity(self.rows - 1);
-        let mut conditionals = Vec::with_capacity(self.rows - 1);
+        let mut conditionals = Vec::with_capacity((self.rows - 1) * (w + 1));
         let mut cell = vec![0.0f64; w];
         for j in 0..self.rows - 1 {
             let (a, b) = (j as f64 * dtheta, (j + 1) as f64 * dtheta);
@@ -239,7 +246,10 @@ impl EnvMap {
                 *c = dphi * (top * a0.max(0.0) + bottom * a1.max(0.0));
             }
             band_totals.push(cell.iter().sum::<f64>());
-            conditionals.push(Distribution1D::new(cell.iter().copied()));
+            match Distribution1D::new(cell.iter().copied()) {
+                Some(d) => conditionals.extend_from_slice(d.cdf()),
+                None => conditionals.extend(std::iter::repeat_n(0.0, w + 1)),
+            }
         }
         let marginal = Distribution1D::new(band_totals)?;
         Some((marginal, conditionals))
@@ -270,55 +280,69 @@ impl EnvMap {
     /// Radiance towards unit map-frame direction `v` (zero vector: black).
     #[inline]
     fn eval_local(&self, v: Vec3) -> Vec3 {
-        if v == Vec3::ZERO || self.texels.is_empty() {
-            return Vec3::ZERO;
+        match self.coords(v) {
+            Some(c) => self.bilinear(&c),
+            None => Vec3::ZERO,
         }
-        let (i, fx) = self.column(v);
-        let y = v.y.clamp(-1.0, 1.0).acos() * (1.0 / PI) * (self.rows - 1) as f32;
-        let j = (y as usize).min(self.rows - 2);
-        let fy = (y - j as f32).clamp(0.0, 1.0);
-        self.bilinear(i, fx, j, fy)
     }
 
-    /// Column cell `i` and the fraction `fx ∈ [0, 1]` inside it for a unit map direction.
+    /// Lookup coordinates of a unit map-frame direction (one `atan2`, one `acos`).
+    ///
+    /// The row band `j` is corrected against the `cos θ` table that [`Self::sample`] uses,
+    /// so that a sample's pdf and [`Self::pdf_world`] agree even when `acos` rounds across
+    /// a band edge; the lookup is continuous there, so `fy` is simply clamped.
     #[inline]
-    fn column(&self, v: Vec3) -> (usize, f32) {
+    fn coords(&self, v: Vec3) -> Option<Coords> {
+        if v == Vec3::ZERO || self.texels.is_empty() {
+            return None;
+        }
+        // Column: texel x sits at u = (x + ½)/W (Mitsuba's half-texel shift), periodic.
         let w = self.width as f32;
         let u = v.x.atan2(-v.z) * (0.5 / PI);
         let mut x = u - 0.5 / w;
         x -= x.floor();
         x *= w;
         let i = (x as usize).min(self.width - 1);
-        (i, (x - i as f32).clamp(0.0, 1.0))
-    }
-
-    #[inline]
-    fn bilinear(&self, i: usize, fx: f32, j: usize, fy: f32) -> Vec3 {
-        let top = self.texel(i, j) * (1.0 - fx) + self.texel(i + 1, j) * fx;
-        let bottom = self.texel(i, j + 1) * (1.0 - fx) + self.texel(i + 1, j + 1) * fx;
-        top * (1.0 - fy) + bottom * fy
-    }
-
-    /// Row band `j` containing a unit map direction, consistent with the `cos θ` table used
-    /// by [`Self::sample`] (so a sample's pdf and [`Self::pdf_world`] agree).
-    #[inline]
-    fn band(&self, v: Vec3) -> usize {
+        let fx = (x - i as f32).clamp(0.0, 1.0);
+        // Row: row y sits at θ = y π / (rows − 1).
         let cos = v.y.clamp(-1.0, 1.0);
         let y = cos.acos() * (1.0 / PI) * (self.rows - 1) as f32;
         let mut j = (y as usize).min(self.rows - 2);
-        // Correct the rounding of acos against the table: cos θ_j ≥ cos > cos θ_{j+1}.
         if j > 0 && cos > self.cos_theta[j] {
             j -= 1;
         } else if j + 2 < self.rows && cos <= self.cos_theta[j + 1] {
             j += 1;
         }
-        j
+        let fy = (y - j as f32).clamp(0.0, 1.0);
+        Some(Coords { i, fx, j, fy })
+    }
+
+    /// Bilinear interpolation of texels `i, i+1` (periodic) × rows `j, j+1`.
+    #[inline]
+    fn bilinear(&self, c: &Coords) -> Vec3 {
+        let top = self.texel(c.i, c.j) * (1.0 - c.fx) + self.texel(c.i + 1, c.j) * c.fx;
+        let bottom = self.texel(c.i, c.j + 1) * (1.0 - c.fx) + self.texel(c.i + 1, c.j + 1) * c.fx;
+        top * (1.0 - c.fy) + bottom * c.fy
+    }
+
+    /// Solid-angle pdf of the cell `(c.i, c.j)`.
+    #[inline]
+    fn cell_pdf(&self, c: &Coords) -> f32 {
+        let Some((marginal, conditionals)) = self.distribution.as_ref() else {
+            return 0.0;
+        };
+        let stride = self.width + 1;
+        let Some(cond) = conditionals.get(c.j * stride..(c.j + 1) * stride) else {
+            return 0.0;
+        };
+        marginal.pmf(c.j) * cdf_pmf(cond, c.i) * self.inv_cell_solid_angle[c.j]
     }
 
     fn sample(&self, u: Vec2) -> Option<EnvSample> {
         let (marginal, conditionals) = self.distribution.as_ref()?;
         let (j, _, uy) = marginal.sample(u.y);
-        let (i, _, ux) = conditionals.get(j)?.as_ref()?.sample(u.x);
+        let stride = self.width + 1;
+        let (i, _, ux) = cdf_sample(conditionals.get(j * stride..(j + 1) * stride)?, u.x);
         // Uniform in φ and cos θ inside the cell.
         let phi = 2.0 * PI * ((i as f32 + 0.5 + ux) / self.width as f32);
         let (c0, c1) = (self.cos_theta[j], self.cos_theta[j + 1]);
@@ -352,17 +376,6 @@ impl EnvMap {
     /// Solid-angle pdf of unit map-frame direction `v`.
     #[inline]
     fn pdf_local(&self, v: Vec3) -> f32 {
-        let Some((marginal, conditionals)) = self.distribution.as_ref() else {
-            return 0.0;
-        };
-        if v == Vec3::ZERO {
-            return 0.0;
-        }
-        let j = self.band(v);
-        let (i, _) = self.column(v);
-        let Some(Some(cond)) = conditionals.get(j) else {
-            return 0.0;
-        };
-        marginal.pmf(j) * cond.pmf(i) * self.inv_cell_solid_angle[j]
+        self.coords(v).map_or(0.0, |c| self.cell_pdf(&c))
     }
 }
