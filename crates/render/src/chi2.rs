@@ -117,7 +117,7 @@ impl Default for Chi2Config {
             test_count: 1,
             min_expected: 5.0,
             pdf_rel_tol: 1e-3,
-            count_tol: 1e-3,
+            count_tol: 1e-2,
         }
     }
 }
@@ -371,7 +371,7 @@ fn integrate_2d(f: &impl Fn(f64, f64) -> f64, z0: f64, z1: f64, p0: f64, p1: f64
 /// Subdivision levels always taken (so that narrow peaks inside a cell are seen).
 const MIN_DEPTH: u32 = 2;
 /// Subdivision limit.
-const MAX_DEPTH: u32 = 12;
+const MAX_DEPTH: u32 = 10;
 
 /// Adaptive Simpson quadrature of `f` over [a, b] to absolute tolerance `tol`.
 pub fn adaptive_simpson(

@@ -165,6 +165,36 @@ impl Bsdf {
         }
     }
 
+    /// `(eval(wo, wi), pdf(wo, wi))` in one call, sharing the microfacet terms (what an
+    /// integrator wants for MIS after light sampling).
+    #[inline]
+    pub fn eval_pdf(&self, wo: Vec3, wi: Vec3) -> (Vec3, f32) {
+        let (wo, wi, _) = self.orient(wo, wi);
+        match &self.kind {
+            BsdfKind::Diffuse { reflectance } => {
+                (diffuse::eval(*reflectance, wo, wi), diffuse::pdf(wo, wi))
+            }
+            BsdfKind::Conductor { .. } => (Vec3::ZERO, 0.0),
+            BsdfKind::RoughConductor {
+                distribution,
+                alpha,
+                eta,
+                k,
+                specular_reflectance,
+            } => {
+                let mf = Microfacet::new(*distribution, *alpha);
+                rough_conductor::eval_pdf(&mf, *eta, *k, *specular_reflectance, wo, wi)
+            }
+            BsdfKind::RoughPlastic {
+                params,
+                diffuse_reflectance,
+                specular_reflectance,
+            } => {
+                rough_plastic::eval_pdf(params, *diffuse_reflectance, *specular_reflectance, wo, wi)
+            }
+        }
+    }
+
     /// Sample `wi` given `wo`; `u_lobe` picks the lobe, `u` the direction within it (both uniform
     /// in [0, 1)). `None` for a failed sample (wrong side, direction below the surface, pdf 0).
     #[inline]
@@ -276,9 +306,11 @@ pub struct MaterialTable {
 impl MaterialTable {
     /// Prepare `materials` (indexed by [`scene::MaterialId`]) whose colours refer to `textures`.
     pub fn new(materials: &[scene::Material], textures: &[scene::Texture]) -> Self {
+        // Rough plastic tables depend only on (distribution, α, η): share them between materials.
+        let mut cache = Vec::new();
         let entries = materials
             .iter()
-            .map(|m| Self::entry(m, textures, false))
+            .map(|m| Self::entry(m, textures, false, &mut cache))
             .collect();
         Self {
             entries,
@@ -286,7 +318,12 @@ impl MaterialTable {
         }
     }
 
-    fn entry(m: &scene::Material, textures: &[scene::Texture], two_sided: bool) -> (Entry, bool) {
+    fn entry(
+        m: &scene::Material,
+        textures: &[scene::Texture],
+        two_sided: bool,
+        cache: &mut Vec<((scene::Distribution, u32, u32), RoughPlasticParams)>,
+    ) -> (Entry, bool) {
         use scene::Material as M;
         let e = match m {
             M::Diffuse { reflectance } => Entry::Diffuse {
@@ -324,21 +361,37 @@ impl MaterialTable {
             } => {
                 let d_mean = crate::texture::mean_color(diffuse_reflectance, textures);
                 let s_mean = crate::texture::mean_color(specular_reflectance, textures);
-                let params = RoughPlasticParams::new(
-                    *distribution,
-                    *alpha,
-                    *eta,
-                    d_mean,
-                    s_mean,
-                    *nonlinear,
-                );
+                let key = (*distribution, alpha.to_bits(), eta.to_bits());
+                let mut params = match cache.iter().find(|(k, _)| *k == key) {
+                    Some((_, p)) => *p,
+                    None => {
+                        let p = RoughPlasticParams::new(
+                            *distribution,
+                            *alpha,
+                            *eta,
+                            d_mean,
+                            s_mean,
+                            *nonlinear,
+                        );
+                        cache.push((key, p));
+                        p
+                    }
+                };
+                // Colour-dependent parts are per material.
+                let sum = d_mean + s_mean;
+                params.specular_sampling_weight = if sum > 0.0 && sum.is_finite() {
+                    s_mean / sum
+                } else {
+                    0.5
+                };
+                params.nonlinear = *nonlinear;
                 Entry::RoughPlastic {
                     params: Box::new(params),
                     diffuse_reflectance: *diffuse_reflectance,
                     specular_reflectance: *specular_reflectance,
                 }
             }
-            M::TwoSided(inner) => return Self::entry(inner, textures, true),
+            M::TwoSided(inner) => return Self::entry(inner, textures, true, cache),
         };
         (e, two_sided)
     }
@@ -358,7 +411,6 @@ impl MaterialTable {
     #[inline]
     pub fn bsdf(&self, id: scene::MaterialId, uv: Vec2) -> Bsdf {
         let Some((entry, two_sided)) = self.entries.get(id as usize) else {
-            debug_assert!(false, "material id {id} out of range");
             return Bsdf::new(BsdfKind::Diffuse {
                 reflectance: Vec3::splat(0.5),
             });

@@ -64,6 +64,31 @@ pub fn pdf(mf: &Microfacet, wo: Vec3, wi: Vec3) -> f32 {
     if p.is_finite() { p } else { 0.0 }
 }
 
+/// `(eval, pdf)` in one pass (shares h, D and G1(wo, h)).
+#[inline]
+pub fn eval_pdf(
+    mf: &Microfacet,
+    eta: Vec3,
+    k: Vec3,
+    specular_reflectance: Vec3,
+    wo: Vec3,
+    wi: Vec3,
+) -> (Vec3, f32) {
+    if wo.z <= 0.0 || wi.z <= 0.0 {
+        return (Vec3::ZERO, 0.0);
+    }
+    let h = (wo + wi).normalize();
+    if wo.dot(h) <= 0.0 || wi.dot(h) <= 0.0 {
+        return (Vec3::ZERO, 0.0);
+    }
+    let pdf = mf.d(h) * mf.g1(wo, h) / (4.0 * wo.z);
+    if !pdf.is_finite() || pdf == 0.0 {
+        return (Vec3::ZERO, 0.0);
+    }
+    let v = specular_reflectance * fresnel::conductor(wo.dot(h), eta, k) * (pdf * mf.g1(wi, h));
+    (if v.is_finite() { v } else { Vec3::ZERO }, pdf)
+}
+
 /// Visible-normal sample; `None` if `wo` is below the surface or the reflection goes below it.
 #[inline]
 pub fn sample(
@@ -82,11 +107,10 @@ pub fn sample(
     if wi.z <= 0.0 || !wi.is_finite() {
         return None;
     }
-    let pdf = pdf(mf, wo, wi);
+    let (value, pdf) = eval_pdf(mf, eta, k, specular_reflectance, wo, wi);
     if pdf.is_nan() || pdf <= 0.0 {
         return None;
     }
-    let value = eval(mf, eta, k, specular_reflectance, wo, wi);
     Some(BsdfSample {
         wi,
         weight: value / pdf,

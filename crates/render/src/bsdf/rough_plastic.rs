@@ -21,11 +21,13 @@
 //! - specular: F(wo·h, η) D(h) G1(wo,h) G1(wi,h) / (4 cos θo) · specular_reflectance;
 //! - diffuse: ρ / (1 − R_int) (or ρ / (1 − ρ R_int) if `nonlinear`) · T(cos θo) T(cos θi) /
 //!   (π η²) · cos θi — the (1 − F_in)(1 − F_out)/η² of a smooth coating, with the rough
-//!   coating's directional transmittance T(μ) = 1 − R(μ, η) in place of 1 − F;
+//!   coating's directional transmittance T(μ) in place of 1 − F;
+//! - T(μ, η) = ∫ (1 − F(wo·m, η)) G1(wt, m) D_wo(m) dm (wt: wo refracted at m), tabulated at
+//!   [`TABLE_RES`] points μ = max(1e-6, i/63) by Gauss–Legendre quadrature over the
+//!   visible-normal sample space (32² nodes for η > 1, 128² otherwise), looked up by linear
+//!   interpolation ([`transmittance_albedo`]);
 //! - R(μ, η) = ∫ F(wo·m, η) G1(wi, m) D_wo(m) dm, the directional albedo of the coating's specular
-//!   lobe (with Fresnel) at cos θo = μ, tabulated at [`TABLE_RES`] points μ = max(1e-6, i/63) by
-//!   Gauss–Legendre quadrature over the visible-normal sample space (32² nodes for η > 1, 128²
-//!   otherwise), looked up by linear interpolation;
+//!   lobe ([`specular_albedo`], same quadrature);
 //! - R_int = 2 · mean_i(R(μ_i, 1/η) μ_i): the internal (cosine-weighted) reflectance of the layer
 //!   seen from below.
 //!
@@ -78,12 +80,24 @@ impl RoughPlasticParams {
         } else {
             1.49
         };
+        // The 64 directions are independent: evaluate them in parallel, then sum in a fixed
+        // order so the result does not depend on scheduling.
+        use rayon::prelude::*;
+        let per_mu: Vec<(f32, f32)> = (0..TABLE_RES)
+            .into_par_iter()
+            .map(|i| {
+                let mu = (i as f32 / (TABLE_RES - 1) as f32).max(1e-6);
+                (
+                    transmittance_albedo(&microfacet, mu, eta),
+                    specular_albedo(&microfacet, mu, 1.0 / eta) * mu,
+                )
+            })
+            .collect();
         let mut external_transmittance = [0.0f32; TABLE_RES];
         let mut internal = 0.0f64;
-        for (i, t) in external_transmittance.iter_mut().enumerate() {
-            let mu = (i as f32 / (TABLE_RES - 1) as f32).max(1e-6);
-            *t = 1.0 - specular_albedo(&microfacet, mu, eta);
-            internal += (specular_albedo(&microfacet, mu, 1.0 / eta) * mu) as f64;
+        for (t, (ext, int)) in external_transmittance.iter_mut().zip(&per_mu) {
+            *t = *ext;
+            internal += *int as f64;
         }
         let internal_reflectance = (2.0 * internal / TABLE_RES as f64) as f32;
         let sum = diffuse_mean + specular_mean;
@@ -114,7 +128,12 @@ impl RoughPlasticParams {
     /// Probability of sampling the specular lobe given cos θo.
     #[inline]
     fn prob_specular(&self, cos_theta_o: f32) -> f32 {
-        let t = self.transmittance(cos_theta_o);
+        self.prob_specular_from_t(self.transmittance(cos_theta_o))
+    }
+
+    /// Probability of sampling the specular lobe given T(cos θo).
+    #[inline]
+    fn prob_specular_from_t(&self, t: f32) -> f32 {
         let ps = (1.0 - t) * self.specular_sampling_weight;
         let pd = t * (1.0 - self.specular_sampling_weight);
         if ps + pd > 0.0 { ps / (ps + pd) } else { 0.5 }
@@ -138,6 +157,40 @@ pub fn specular_albedo(mf: &Microfacet, mu: f32, eta: f32) -> f32 {
                 continue;
             }
             let v = mf.g1(wi, m) * fresnel::dielectric(wo.dot(m), eta);
+            if v.is_finite() {
+                acc += v as f64 * wx * wy;
+            }
+        }
+    }
+    (acc * 0.25) as f32
+}
+
+/// T(μ, η): fraction of light arriving at cos θ = μ that the rough interface refracts into the
+/// layer, E_{m ~ D_wo}[(1 − F(wo·m, η)) G1(wt, m)] with wt the refracted direction (Mitsuba's
+/// `eval_transmittance`, same quadrature as [`specular_albedo`]).
+pub fn transmittance_albedo(mf: &Microfacet, mu: f32, eta: f32) -> f32 {
+    let n = if eta > 1.0 { 32 } else { 128 };
+    let (nodes, weights) = gauss_legendre(n);
+    let wo = Vec3::new((1.0 - mu * mu).max(0.0).sqrt(), 0.0, mu);
+    let mut acc = 0.0f64;
+    for (x, wx) in nodes.iter().zip(&weights) {
+        for (y, wy) in nodes.iter().zip(&weights) {
+            let u = Vec2::new((0.5 * x + 0.5) as f32, (0.5 * y + 0.5) as f32);
+            let m = mf.sample_visible(wo, u);
+            let cos_i = wo.dot(m);
+            let f = fresnel::dielectric(cos_i, eta);
+            // Snell with the side-dependent relative IOR; TIR gives f = 1 (no contribution).
+            let eta_ti = if cos_i >= 0.0 { 1.0 / eta } else { eta };
+            let cos_t_sqr = 1.0 - (1.0 - cos_i * cos_i) * eta_ti * eta_ti;
+            if cos_t_sqr <= 0.0 {
+                continue;
+            }
+            let cos_t = -cos_t_sqr.sqrt().copysign(cos_i);
+            let wt = m * (cos_i * eta_ti + cos_t) - wo * eta_ti;
+            if wt.z * wo.z >= 0.0 {
+                continue;
+            }
+            let v = mf.g1(wt, m) * (1.0 - f);
             if v.is_finite() {
                 acc += v as f64 * wx * wy;
             }
@@ -210,6 +263,40 @@ pub fn pdf(p: &RoughPlasticParams, wo: Vec3, wi: Vec3) -> f32 {
     if v.is_finite() { v } else { 0.0 }
 }
 
+/// `(eval, pdf)` in one pass (shares h, D and G1(wo, h)).
+#[inline]
+pub fn eval_pdf(
+    p: &RoughPlasticParams,
+    diffuse: Vec3,
+    specular: Vec3,
+    wo: Vec3,
+    wi: Vec3,
+) -> (Vec3, f32) {
+    if wo.z <= 0.0 || wi.z <= 0.0 {
+        return (Vec3::ZERO, 0.0);
+    }
+    let mf = &p.microfacet;
+    let h = (wo + wi).normalize();
+    let d = mf.d(h);
+    let g1o = mf.g1(wo, h);
+    let spec_pdf = d * g1o / (4.0 * wo.z);
+    let spec = fresnel::dielectric(wo.dot(h), p.eta) * spec_pdf * mf.g1(wi, h);
+    let denom = if p.nonlinear {
+        Vec3::ONE - diffuse * p.internal_reflectance
+    } else {
+        Vec3::splat(1.0 - p.internal_reflectance)
+    };
+    let t_o = p.transmittance(wo.z);
+    let diff = diffuse / denom * (FRAC_1_PI / (p.eta * p.eta) * wi.z * t_o * p.transmittance(wi.z));
+    let v = specular * spec + diff;
+    let ps = p.prob_specular_from_t(t_o);
+    let pdf = ps * spec_pdf + (1.0 - ps) * cosine_hemisphere_pdf(wi);
+    (
+        if v.is_finite() { v } else { Vec3::ZERO },
+        if pdf.is_finite() { pdf } else { 0.0 },
+    )
+}
+
 /// Mixture sample (lobe chosen with `u_lobe`); `None` if the direction falls below the surface.
 #[inline]
 pub fn sample(
@@ -228,11 +315,11 @@ pub fn sample(
     } else {
         square_to_cosine_hemisphere(u)
     };
-    let pdf = pdf(p, wo, wi);
+    let (value, pdf) = eval_pdf(p, diffuse, specular, wo, wi);
     if pdf.is_nan() || pdf <= 0.0 {
         return None;
     }
-    let weight = eval(p, diffuse, specular, wo, wi) / pdf;
+    let weight = value / pdf;
     Some(BsdfSample {
         wi,
         weight,
