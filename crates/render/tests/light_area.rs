@@ -8,7 +8,7 @@ mod light_support;
 use glam::{Vec2, Vec3};
 use light_support::{Zoom, mesh, mesh_direction_pdf, scene, sphere, sphere_direction_pdf};
 use render::chi2::{Chi2Config, Pcg32, test_directions};
-use render::light::{LightSelection, Lights};
+use render::light::{LightKind, LightSelection, Lights};
 use scene::Environment;
 
 /// χ² tests in this file (Šidák correction of the family-wise level).
@@ -433,6 +433,10 @@ fn light_indices_and_selection_pmfs() {
             (Some(1), None)
         );
         assert_eq!(lights.env_light(), Some(2));
+        assert_eq!(lights.kind(0), Some(LightKind::Mesh { mesh: 1 }));
+        assert_eq!(lights.kind(1), Some(LightKind::Sphere { sphere: 0 }));
+        assert_eq!(lights.kind(2), Some(LightKind::Environment));
+        assert_eq!(lights.kind(3), None);
         let sum: f32 = (0..3).map(|l| lights.selection_pmf(l)).sum();
         assert!((sum - 1.0).abs() < 1e-6, "{selection:?}: pmfs sum to {sum}");
         assert_eq!(lights.selection_pmf(3), 0.0);

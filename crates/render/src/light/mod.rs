@@ -75,6 +75,23 @@ pub enum LightSelection {
     Power,
 }
 
+/// What a light index refers to (see [`Lights::kind`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LightKind {
+    /// Emitting mesh `Scene::meshes[mesh]`.
+    Mesh {
+        /// Index into [`scene::Scene::meshes`].
+        mesh: u32,
+    },
+    /// Emitting sphere `Scene::spheres[sphere]`.
+    Sphere {
+        /// Index into [`scene::Scene::spheres`].
+        sphere: u32,
+    },
+    /// The environment (map or constant).
+    Environment,
+}
+
 /// One light.
 #[derive(Clone, Debug, PartialEq)]
 enum Light {
@@ -102,6 +119,8 @@ const NO_LIGHT: u32 = u32::MAX;
 #[derive(Clone, Debug, PartialEq)]
 pub struct Lights {
     lights: Vec<Light>,
+    /// What each light is (parallel to `lights`).
+    kinds: Vec<LightKind>,
     /// Light index per mesh (`NO_LIGHT` if not emitting); empty when there are no area lights.
     mesh_to_light: Vec<u32>,
     /// Light index per sphere; empty when there are no area lights.
@@ -116,6 +135,7 @@ impl Lights {
     /// Collects the scene's emitters and prepares light selection.
     pub fn new(scene: &scene::Scene, selection: LightSelection) -> Self {
         let mut lights = Vec::new();
+        let mut kinds = Vec::new();
         let mut mesh_to_light = Vec::new();
         let mut sphere_to_light = Vec::new();
         let any_area = scene.meshes.iter().any(|m| m.emitter.is_some())
@@ -127,6 +147,7 @@ impl Lights {
                 if let Some(radiance) = mesh.emitter {
                     mesh_to_light[k] = lights.len() as u32;
                     lights.push(Light::Mesh(MeshLight::new(mesh, sanitize(radiance))));
+                    kinds.push(LightKind::Mesh { mesh: k as u32 });
                 }
             }
             for (k, s) in scene.spheres.iter().enumerate() {
@@ -138,12 +159,14 @@ impl Lights {
                         flip_normals: s.flip_normals,
                         radiance: sanitize(radiance),
                     }));
+                    kinds.push(LightKind::Sphere { sphere: k as u32 });
                 }
             }
         }
         let env = scene.environment.as_ref().map(|e| {
             let idx = lights.len() as u32;
             lights.push(Light::Env);
+            kinds.push(LightKind::Environment);
             (EnvLight::new(e), idx)
         });
 
@@ -178,6 +201,7 @@ impl Lights {
         };
         Self {
             lights,
+            kinds,
             mesh_to_light,
             sphere_to_light,
             env,
@@ -219,6 +243,13 @@ impl Lights {
     #[inline]
     pub fn env_light(&self) -> Option<u32> {
         self.env.as_ref().map(|(_, i)| *i)
+    }
+
+    /// What light `light` is (the inverse of [`Self::mesh_light`], [`Self::sphere_light`],
+    /// [`Self::env_light`]); `None` for an invalid index.
+    #[inline]
+    pub fn kind(&self, light: u32) -> Option<LightKind> {
+        self.kinds.get(light as usize).copied()
     }
 
     /// Probability that [`Self::select`] picks `light` (0 for an invalid index).
