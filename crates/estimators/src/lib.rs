@@ -14,7 +14,10 @@
 //!   [Fan eq. 7–11].
 //! - [`perlight`]: per-light mean-contribution coefficients of the `per_light_cv` baseline
 //!   [Hua §7.2].
+//! - [`reconstruct`]: image-space reconstructions of gradient-domain renderings: uniform and
+//!   weighted iterated CV, screened Poisson L2 and weighted L2 [Rou §5].
 //! - [`metrics`]: relMSE, MSE, efficiency and speedup (DESIGN §6).
+//! - [`perceptual`]: Fan's perceptual error with the tvi function [Fan eq. 12].
 
 #![deny(missing_docs)]
 // `!(x > 0.0)` is deliberate throughout: a NaN must fail every validity check.
@@ -24,5 +27,7 @@ pub mod cell;
 pub mod metrics;
 pub mod mis;
 pub mod ocv;
+pub mod perceptual;
 pub mod perlight;
+pub mod reconstruct;
 pub mod solve;
