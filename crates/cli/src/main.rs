@@ -1,3 +1,55 @@
-//! `cvfarm`: the command-line tool (in progress).
+//! `cvfarm`: the command-line tool of the cvfarm render farm.
+//!
+//! This file only parses the command line and dispatches; each subcommand lives in its own
+//! module with its arguments and its `run` function.
+//!
+//! # Layout
+//! - [`render_cmd`]: `cvfarm render` — render a scene locally (embedded renderer) to EXR/PNG.
+//! - [`compare_cmd`]: `cvfarm compare` — error of a test image against a reference (relMSE, …).
+//! - [`cli_error`]: how errors are reported (one line on stderr, exit status).
+//!
+//! Every flag can also be given as an environment variable (`CVFARM_SPP`, `CVFARM_SEED`, …;
+//! `cvfarm help render` lists them); an explicit flag wins over the variable.
 
-fn main() {}
+#![deny(missing_docs)]
+
+mod cli_error;
+mod compare_cmd;
+mod render_cmd;
+
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+
+/// cvfarm: control-variate Monte Carlo rendering, locally or on a render farm.
+#[derive(Debug, Parser)]
+#[command(name = "cvfarm", version, about, propagate_version = true)]
+struct Cli {
+    /// What to do.
+    #[command(subcommand)]
+    command: Command,
+}
+
+/// The subcommands.
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Render a scene (native .json or Mitsuba 3 .xml) to an EXR file (and a PNG preview).
+    Render(render_cmd::RenderArgs),
+    /// Compare a test EXR with a reference EXR: relMSE (ε = 0.01), MSE, mean ratio, NaN/Inf.
+    Compare(compare_cmd::CompareArgs),
+}
+
+fn main() -> ExitCode {
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(e) => return cli_error::report_clap(&e),
+    };
+    let result = match cli.command {
+        Command::Render(args) => render_cmd::run(&args),
+        Command::Compare(args) => compare_cmd::run(&args),
+    };
+    match result {
+        Ok(code) => code,
+        Err(e) => cli_error::report(&e),
+    }
+}

@@ -1,0 +1,79 @@
+//! Error reporting of the `cvfarm` binary.
+//!
+//! Contract (operators grep logs, scripts test exit codes):
+//! - a failed command prints **exactly one line** `error: <what>: <cause>: …` on stderr and
+//!   exits with status 1 ([`report`]);
+//! - a bad command line (unknown flag, malformed value, unknown estimator) prints one line
+//!   `error: …` on stderr and exits with status 2 ([`report_clap`]); `--help` and `--version`
+//!   print normally and exit 0;
+//! - `cvfarm compare --max-rel-mse X` exits with status 3 when the image is worse than `X`
+//!   (see [`crate::compare_cmd`]).
+
+use std::process::ExitCode;
+
+/// Exit status of a failed command.
+pub const EXIT_FAILURE: u8 = 1;
+/// Exit status of a bad command line (clap's convention).
+pub const EXIT_USAGE: u8 = 2;
+
+/// Joins the error's cause chain into one line.
+pub fn one_line(e: &anyhow::Error) -> String {
+    let text = format!("{e:#}");
+    squash(&text)
+}
+
+/// Collapses whitespace runs (including newlines) into single spaces.
+fn squash(text: &str) -> String {
+    text.split_whitespace().collect::<Vec<_>>().join(" ")
+}
+
+/// Prints `error: …` (one line) and returns the failure exit status.
+pub fn report(e: &anyhow::Error) -> ExitCode {
+    eprintln!("error: {}", one_line(e));
+    ExitCode::from(EXIT_FAILURE)
+}
+
+/// Reports a command-line parse error on one line (help and version are printed as is).
+pub fn report_clap(e: &clap::Error) -> ExitCode {
+    use clap::error::ErrorKind;
+    match e.kind() {
+        ErrorKind::DisplayHelp
+        | ErrorKind::DisplayVersion
+        | ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand => {
+            // Help text goes to stdout (or stderr for the missing-subcommand case) unchanged.
+            let _ = e.print();
+            if e.kind() == ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand {
+                ExitCode::from(EXIT_USAGE)
+            } else {
+                ExitCode::SUCCESS
+            }
+        }
+        _ => {
+            let rendered = e.render().to_string();
+            let lines: Vec<&str> = rendered
+                .lines()
+                .map(str::trim)
+                .filter(|l| {
+                    !l.is_empty()
+                        && !l.starts_with("For more information")
+                        && !l.starts_with("Usage:")
+                })
+                .collect();
+            let msg = squash(&lines.join(" "));
+            let msg = msg.strip_prefix("error: ").unwrap_or(&msg);
+            eprintln!("error: {msg} (see `cvfarm --help`)");
+            ExitCode::from(EXIT_USAGE)
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cause_chain_is_one_line() {
+        let e = anyhow::anyhow!("line one\nline two").context("loading scene.json");
+        assert_eq!(one_line(&e), "loading scene.json: line one line two");
+    }
+}
