@@ -503,3 +503,34 @@ fn combined_sample_with_power_selection_chi2() {
     assert!(r.passed, "{}", r.report());
     assert!((r.pdf_integral - 1.0).abs() < 2e-3, "{}", r.report());
 }
+
+#[test]
+fn non_finite_inputs_give_none_or_zero() {
+    let sc = mixed_scene();
+    let lights = Lights::new(&sc, LightSelection::Power);
+    let bad = [f32::NAN, f32::INFINITY, f32::NEG_INFINITY];
+    for &x in &bad {
+        let p = Vec3::new(x, 0.0, 0.0);
+        let u = Vec2::new(x, 0.5);
+        for light in 0..lights.len() as u32 {
+            for (p, u) in [(p, Vec2::new(0.3, 0.4)), (Vec3::ZERO, u)] {
+                if let Some(s) = lights.sample_light(light, p, u) {
+                    assert!(
+                        s.wi.is_finite()
+                            && s.pdf.is_finite()
+                            && s.pdf > 0.0
+                            && s.radiance.is_finite(),
+                        "light {light}, p = {p}, u = {u}: {s:?}"
+                    );
+                }
+            }
+            let q = lights.pdf_area(light, p, Vec3::new(0.0, 0.0, 1.5), -Vec3::Z);
+            assert!(q.is_finite(), "light {light}: pdf_area {q}");
+        }
+        let d = Vec3::new(x, 1.0, 0.0);
+        assert!(lights.pdf_env(d).is_finite() && lights.env_radiance(d).is_finite());
+        if let Some((l, pmf)) = lights.select(x) {
+            assert!((l as usize) < lights.len() && pmf > 0.0);
+        }
+    }
+}

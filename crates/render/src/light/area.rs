@@ -233,7 +233,8 @@ impl SphereLight {
             Some(cone) => self.sample_cone(&cone, p, u)?,
             None => self.sample_inside(p, u)?,
         };
-        (s.pdf.is_finite() && s.pdf > 0.0 && s.dist > 0.0 && s.dist.is_finite()).then_some(s)
+        (s.pdf.is_finite() && s.pdf > 0.0 && s.dist > 0.0 && s.dist.is_finite() && s.wi.is_finite())
+            .then_some(s)
     }
 
     /// Uniform direction in the cone, then the first intersection with the sphere.

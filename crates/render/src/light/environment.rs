@@ -100,11 +100,14 @@ impl EnvLight {
     pub(crate) fn sample(&self, u: Vec2) -> Option<EnvSample> {
         match self {
             Self::Map(map) => map.sample(u),
-            Self::Constant { radiance } => Some(EnvSample {
-                wi: uniform_sphere(u),
-                radiance: *radiance,
-                pdf: 1.0 / (4.0 * PI),
-            }),
+            Self::Constant { radiance } => {
+                let wi = uniform_sphere(u);
+                wi.is_finite().then_some(EnvSample {
+                    wi,
+                    radiance: *radiance,
+                    pdf: 1.0 / (4.0 * PI),
+                })
+            }
         }
     }
 
