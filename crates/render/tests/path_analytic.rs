@@ -211,3 +211,41 @@ fn hide_emitters_makes_directly_seen_env_black() {
     assert_eq!(film.image_mean(), [0.0; 3]);
     assert_eq!(stats.samples, 32);
 }
+
+#[test]
+fn techniques_list_only_what_the_scene_calls_for() {
+    let mut s = empty_scene(look_at(Vec3::ZERO, Vec3::Z, Vec3::Y), 30.0, 4, 4);
+    let grey = add_material(&mut s, diffuse(Vec3::splat(0.5), false));
+    s.meshes
+        .push(quad(Vec3::new(0.0, 0.0, 2.0), Vec3::X, Vec3::Y, grey, None));
+    let direct = RenderSettings {
+        max_depth: 2,
+        rr_depth: 5,
+        ..RenderSettings::from_scene(&s)
+    };
+    let rs = RenderScene::new(&s, &direct).unwrap();
+    // No emitter at all: nothing to sample but BSDF directions.
+    assert_eq!(rs.techniques(&direct), vec!["bsdf_sampling"]);
+    s.environment = constant_env(Vec3::ONE);
+    let deep = RenderSettings {
+        max_depth: 5,
+        rr_depth: 3,
+        ..direct
+    };
+    let rs = RenderScene::new(&s, &deep).unwrap();
+    assert_eq!(
+        rs.techniques(&deep),
+        vec![
+            "emission",
+            "nee",
+            "bsdf_sampling",
+            "indirect",
+            "env",
+            "russian_roulette"
+        ]
+    );
+    assert_eq!(
+        rs.techniques(&direct),
+        vec!["emission", "nee", "bsdf_sampling", "env"]
+    );
+}

@@ -98,7 +98,11 @@ impl RenderSettings {
     /// Override fields with struct update syntax.
     pub fn from_scene(scene: &scene::Scene) -> Self {
         Self {
-            spp: scene.integrator.sample_count.unwrap_or(Self::DEFAULT_SPP).max(1),
+            spp: scene
+                .integrator
+                .sample_count
+                .unwrap_or(Self::DEFAULT_SPP)
+                .max(1),
             seed: 0,
             max_depth: scene.integrator.max_depth,
             rr_depth: scene.integrator.rr_depth,
@@ -189,6 +193,8 @@ pub struct RenderScene {
     pub lights: Lights,
     /// The camera.
     pub camera: Camera,
+    /// What the scene calls for (emitters, env, BSDF kinds, …); drives what gets built.
+    pub features: scene::Features,
     /// Image width.
     pub width: u32,
     /// Image height.
@@ -214,6 +220,8 @@ impl RenderScene {
         if width == 0 || height == 0 {
             return Err(RenderError::EmptyFilm { width, height });
         }
+        let features = scene::Features::of(scene);
+        // `Lights` builds env-map tables only for an env map, nothing per light for none.
         let lights = Lights::new(scene, settings.light_selection);
         let mesh_lights: Vec<Option<u32>> = (0..scene.meshes.len())
             .map(|i| lights.mesh_light(i))
@@ -229,9 +237,43 @@ impl RenderScene {
             materials,
             lights,
             camera,
+            features,
             width,
             height,
         })
+    }
+
+    /// The techniques a render with `settings` actually simulates in this scene (for the job
+    /// record): `emission` (emitters seen along paths), `nee` (light sampling; not with only
+    /// delta BSDFs or no emitters), `bsdf_sampling`, `indirect` (paths longer than direct
+    /// lighting), `env` (an environment light), `russian_roulette`.
+    pub fn techniques(&self, settings: &RenderSettings) -> Vec<&'static str> {
+        let f = &self.features;
+        let mut t = Vec::new();
+        let depth = settings.max_depth_u32();
+        if f.emitters > 0 {
+            t.push("emission");
+        }
+        let smooth = f
+            .bsdf_kinds
+            .iter()
+            .any(|k| *k != scene::BsdfKind::Conductor);
+        if f.emitters > 0 && depth >= 2 && smooth {
+            t.push("nee");
+        }
+        if depth >= 2 {
+            t.push("bsdf_sampling");
+        }
+        if depth > 2 {
+            t.push("indirect");
+        }
+        if f.environment != scene::EnvironmentKind::None {
+            t.push("env");
+        }
+        if depth >= 2 && i64::from(settings.rr_depth) < i64::from(depth) {
+            t.push("russian_roulette");
+        }
+        t
     }
 }
 

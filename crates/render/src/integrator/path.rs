@@ -135,41 +135,42 @@ pub fn trace<O: VertexObserver>(
 
         // ---- emitter sampling (NEE) ----
         let mut light_tech = None;
-        if !bsdf.is_delta() && !lights.is_empty() {
-            if let Some(ls) = lights.sample(h.p, u_select, u_light) {
-                if ls.pdf > 0.0 && ls.pdf.is_finite() {
-                    let wi_local = frame.to_local(ls.wi);
-                    let f = bsdf.eval(wo, wi_local);
-                    let pdf_bsdf = bsdf.pdf(wo, wi_local);
-                    let mut value = Vec3::ZERO;
-                    if f != Vec3::ZERO && ls.radiance != Vec3::ZERO {
-                        let shadow = if ls.dist.is_finite() {
-                            h.spawn_ray_to(h.p + ls.wi * ls.dist)
-                        } else {
-                            h.spawn_ray(ls.wi)
-                        };
-                        out.rays += 1;
-                        if !rs.accel.occluded(shadow.o, shadow.d, shadow.t_max) {
-                            value = f * ls.radiance;
-                        }
-                    }
-                    if value != Vec3::ZERO {
-                        let w = if ls.delta {
-                            1.0
-                        } else {
-                            st.mis.weight(ls.pdf, pdf_bsdf)
-                        };
-                        radiance += beta * value * (w / ls.pdf);
-                    }
-                    light_tech = Some(LightTechnique {
-                        light: ls.light,
-                        wi: ls.wi,
-                        pdf_light: ls.pdf,
-                        pdf_bsdf,
-                        value,
-                    });
+        if !bsdf.is_delta()
+            && !lights.is_empty()
+            && let Some(ls) = lights.sample(h.p, u_select, u_light)
+            && ls.pdf > 0.0
+            && ls.pdf.is_finite()
+        {
+            let wi_local = frame.to_local(ls.wi);
+            let f = bsdf.eval(wo, wi_local);
+            let pdf_bsdf = bsdf.pdf(wo, wi_local);
+            let mut value = Vec3::ZERO;
+            if f != Vec3::ZERO && ls.radiance != Vec3::ZERO {
+                let shadow = if ls.dist.is_finite() {
+                    h.spawn_ray_to(h.p + ls.wi * ls.dist)
+                } else {
+                    h.spawn_ray(ls.wi)
+                };
+                out.rays += 1;
+                if !rs.accel.occluded(shadow.o, shadow.d, shadow.t_max) {
+                    value = f * ls.radiance;
                 }
             }
+            if value != Vec3::ZERO {
+                let w = if ls.delta {
+                    1.0
+                } else {
+                    st.mis.weight(ls.pdf, pdf_bsdf)
+                };
+                radiance += beta * value * (w / ls.pdf);
+            }
+            light_tech = Some(LightTechnique {
+                light: ls.light,
+                wi: ls.wi,
+                pdf_light: ls.pdf,
+                pdf_bsdf,
+                value,
+            });
         }
 
         // ---- BSDF sampling ----
@@ -230,10 +231,11 @@ pub fn trace<O: VertexObserver>(
         match &next {
             None => {
                 tech.emitted = lights.env_radiance(wi);
-                if !bs.delta && tech.emitted != Vec3::ZERO {
-                    if let Some(l) = lights.env_light() {
-                        tech.pdf_light = lights.selection_pmf(l) * lights.pdf_env(wi);
-                    }
+                if !bs.delta
+                    && tech.emitted != Vec3::ZERO
+                    && let Some(l) = lights.env_light()
+                {
+                    tech.pdf_light = lights.selection_pmf(l) * lights.pdf_env(wi);
                 }
             }
             Some(n) => {
