@@ -104,6 +104,12 @@ pub struct Chi2Config {
     pub pdf_rel_tol: f32,
     /// Absolute tolerance of the per-cell quadrature, in units of expected **counts**.
     pub count_tol: f64,
+    /// Subdivision levels of the adaptive Simpson quadrature always taken, per dimension
+    /// (2 = at least 9×9 pdf evaluations per cell). Raise it for features much smaller than a cell
+    /// (e.g. a tiny light), which coarse quadrature could miss entirely.
+    pub quad_min_depth: u32,
+    /// Subdivision limit of the quadrature, per dimension (bounds the cost at discontinuities).
+    pub quad_max_depth: u32,
 }
 
 impl Default for Chi2Config {
@@ -118,6 +124,8 @@ impl Default for Chi2Config {
             min_expected: 5.0,
             pdf_rel_tol: 1e-3,
             count_tol: 1e-2,
+            quad_min_depth: 2,
+            quad_max_depth: 10,
         }
     }
 }
@@ -242,7 +250,13 @@ pub fn test_directions(
         let z0 = -1.0 + i as f64 * dz;
         for j in 0..np {
             let p0 = -PI + j as f64 * dphi;
-            let v = integrate_2d(&pdf64, z0, z0 + dz, p0, p0 + dphi, tol);
+            let v = integrate_2d(
+                &pdf64,
+                [z0, z0 + dz],
+                [p0, p0 + dphi],
+                tol,
+                (cfg.quad_min_depth, cfg.quad_max_depth),
+            );
             expected[i * np + j] = v * n;
             integral += v;
         }
@@ -352,26 +366,30 @@ pub fn pooled_chi2(observed: &[f64], expected: &[f64], min_expected: f64) -> (f6
     (chi2, cells.saturating_sub(1))
 }
 
-/// ∫∫ f(z, φ) over [z0, z1] × [p0, p1] by nested adaptive Simpson (absolute tolerance `tol`).
-fn integrate_2d(f: &impl Fn(f64, f64) -> f64, z0: f64, z1: f64, p0: f64, p1: f64, tol: f64) -> f64 {
+/// ∫∫ f(z, φ) over `z` × `phi` by nested adaptive Simpson (absolute tolerance `tol`,
+/// `(min, max)` subdivision depth per dimension).
+fn integrate_2d(
+    f: &impl Fn(f64, f64) -> f64,
+    z: [f64; 2],
+    phi: [f64; 2],
+    tol: f64,
+    depth: (u32, u32),
+) -> f64 {
+    let (min_depth, max_depth) = depth;
     // An error e of every inner integral becomes e·(z1 − z0) in the outer one.
-    let inner = |z: f64| {
+    let inner_tol = tol / (z[1] - z[0]) * 0.5;
+    let inner = |zz: f64| {
         adaptive_simpson(
-            &|phi| f(z, phi),
-            p0,
-            p1,
-            tol / (z1 - z0) * 0.5,
-            MIN_DEPTH,
-            MAX_DEPTH,
+            &|p| f(zz, p),
+            phi[0],
+            phi[1],
+            inner_tol,
+            min_depth,
+            max_depth,
         )
     };
-    adaptive_simpson(&inner, z0, z1, tol, MIN_DEPTH, MAX_DEPTH)
+    adaptive_simpson(&inner, z[0], z[1], tol, min_depth, max_depth)
 }
-
-/// Subdivision levels always taken (so that narrow peaks inside a cell are seen).
-const MIN_DEPTH: u32 = 2;
-/// Subdivision limit.
-const MAX_DEPTH: u32 = 10;
 
 /// Adaptive Simpson quadrature of `f` over [a, b] to absolute tolerance `tol`.
 pub fn adaptive_simpson(
@@ -529,10 +547,7 @@ mod tests {
     fn gamma_q_matches_closed_forms() {
         // Q(1, x) = e^{-x}; Q(1/2, x) = erfc(√x); χ²_2 survival = e^{-x/2}.
         for x in [0.01, 0.5, 1.0, 3.0, 10.0, 40.0] {
-            assert!(
-                (gamma_q(1.0, x) - (-x).exp()).abs() < 1e-12,
-                "x = {x}"
-            );
+            assert!((gamma_q(1.0, x) - (-x).exp()).abs() < 1e-12, "x = {x}");
         }
         // erfc(1) = 0.157299207050285
         assert!((gamma_q(0.5, 1.0) - 0.157_299_207_050_285).abs() < 1e-12);
