@@ -18,7 +18,7 @@ fn main() {
     let mut hemi = || {
         let z = rng.next_f32().max(1e-3);
         let r = (1.0 - z * z).sqrt();
-        let phi = 6.283_185 * rng.next_f32();
+        let phi = std::f32::consts::TAU * rng.next_f32();
         Vec3::new(r * phi.cos(), r * phi.sin(), z)
     };
     let dirs: Vec<(Vec3, Vec3)> = (0..n).map(|_| (hemi(), hemi())).collect();
