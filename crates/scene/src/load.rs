@@ -540,8 +540,14 @@ pub fn load(desc: &SceneDesc, assets: &dyn AssetSource) -> Result<LoadedScene, S
             continue;
         }
         let (raw, face_normals, source) = ld.raw_mesh(&shape.geometry, &path)?;
-        let nm = normal_matrix(&m)
-            .ok_or_else(|| SceneError::invalid(format!("{path}.transform"), "singular matrix"))?;
+        // A singular transform (e.g. a rectangle flattened along its normal) is allowed: the
+        // file's normals cannot be transformed then, so smooth normals are computed instead.
+        let nm = normal_matrix(&m);
+        if nm.is_none() && raw.normals.is_some() && !face_normals {
+            ld.report.warnings.push(format!(
+                "{path} ({source}): singular transform; vertex normals recomputed from the geometry"
+            ));
+        }
         let positions: Vec<Vec3> = raw
             .positions
             .iter()
@@ -578,6 +584,15 @@ pub fn load(desc: &SceneDesc, assets: &dyn AssetSource) -> Result<LoadedScene, S
                 count: dropped,
             });
         }
+        if indices.is_empty() && shape.emitter.is_some() {
+            return Err(SceneError::invalid(
+                format!("{path}.emitter"),
+                format!(
+                    "{source}: emitter has zero total area (all {} triangles degenerate)",
+                    raw.indices.len()
+                ),
+            ));
+        }
         if indices.is_empty() {
             return Err(SceneError::invalid(
                 &path,
@@ -595,7 +610,7 @@ pub fn load(desc: &SceneDesc, assets: &dyn AssetSource) -> Result<LoadedScene, S
         }
         let mut normals = if face_normals {
             None
-        } else if let Some(ns) = &raw.normals {
+        } else if let (Some(ns), Some(nm)) = (&raw.normals, nm) {
             Some(
                 ns.iter()
                     .map(|n| (nm * *n).normalize_or_zero())
