@@ -14,6 +14,8 @@
 //!   [Fan eq. 7–11].
 //! - [`perlight`]: per-light mean-contribution coefficients of the `per_light_cv` baseline
 //!   [Hua §7.2].
+//! - [`composite`]: inverse-variance and Keller–Olkin weights with PSD check and fallbacks,
+//!   the re-rendering composite [Rou §3.2, §4].
 //! - [`reconstruct`]: image-space reconstructions of gradient-domain renderings: uniform and
 //!   weighted iterated CV, screened Poisson L2 and weighted L2 [Rou §5].
 //! - [`metrics`]: relMSE, MSE, efficiency and speedup (DESIGN §6).
@@ -24,6 +26,7 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod cell;
+pub mod composite;
 pub mod metrics;
 pub mod mis;
 pub mod ocv;
