@@ -37,7 +37,7 @@ use std::str::FromStr;
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::{ProgressBar, ProgressState, ProgressStyle};
 use render::integrator::{Estimator, MisHeuristic, RenderScene, RenderSettings};
 use render::light::LightSelection;
 use render::tile::{RenderOptions, render_image};
@@ -288,9 +288,16 @@ pub fn run(args: &RenderArgs) -> Result<ExitCode> {
     let bar = if std::io::stderr().is_terminal() {
         let bar = ProgressBar::new(total);
         let style = ProgressStyle::with_template(
-            "{spinner} {elapsed_precise} [{wide_bar}] {percent:>3}% {per_sec} samples, ETA {eta}",
+            "{spinner} {elapsed_precise} [{wide_bar}] {percent:>3}% {rate} ETA {eta}",
         )
-        .map(|s| s.progress_chars("=> "))
+        .map(|s| {
+            s.progress_chars("=> ").with_key(
+                "rate",
+                |st: &ProgressState, w: &mut dyn std::fmt::Write| {
+                    let _ = write!(w, "{}samples/s", si(st.per_sec()));
+                },
+            )
+        })
         .unwrap_or_else(|_| ProgressStyle::default_bar());
         bar.set_style(style);
         bar
