@@ -181,3 +181,61 @@ fn chi2_two_sided_back_face() {
         }
     }
 }
+
+#[test]
+fn chi2_detects_a_slightly_wrong_roughness() {
+    // Power check: samples of α = 0.22 judged against the pdf of α = 0.2 must be rejected,
+    // otherwise the tests above would prove little.
+    let sampled = rough_conductor(Ggx, 0.22);
+    let claimed = rough_conductor(Ggx, 0.2);
+    let wo = wos()[1];
+    let r = test_directions(
+        |u: Vec2, u_lobe: f32| {
+            sampled
+                .sample(wo, u_lobe, u)
+                .map(|s| (s.wi, claimed.pdf(wo, s.wi)))
+        },
+        |wi| claimed.pdf(wo, wi),
+        &cfg(900),
+    );
+    assert!(!r.passed && r.p_value < 1e-6, "{}", r.report());
+}
+
+#[test]
+fn chi2_detects_a_wrong_lobe_selection_probability() {
+    // Rough plastic whose sampler picks the specular lobe more often than its pdf says.
+    let bsdf = rough_plastic(Ggx, 0.3, 1.5, Vec3::splat(0.5), false);
+    let wo = wos()[2];
+    let r = test_directions(
+        |u: Vec2, u_lobe: f32| {
+            bsdf.sample(wo, (u_lobe - 0.05).max(0.0), u)
+                .map(|s| (s.wi, s.pdf))
+        },
+        |wi| bsdf.pdf(wo, wi),
+        &cfg(901),
+    );
+    assert!(!r.passed, "{}", r.report());
+}
+
+#[test]
+fn chi2_accepts_delta_samples_reported_as_none() {
+    // A mixture: 30 % of draws are a delta lobe (returned as None); the continuous part's pdf
+    // integrates to 0.7 and the harness must accept it.
+    let bsdf = Bsdf::new(BsdfKind::Diffuse {
+        reflectance: Vec3::ONE,
+    });
+    let wo = wos()[1];
+    let r = test_directions(
+        |u: Vec2, u_lobe: f32| {
+            if u_lobe < 0.3 {
+                None
+            } else {
+                bsdf.sample(wo, 0.5, u).map(|s| (s.wi, 0.7 * s.pdf))
+            }
+        },
+        |wi| 0.7 * bsdf.pdf(wo, wi),
+        &cfg(902),
+    );
+    assert!(r.passed, "{}", r.report());
+    assert!((r.pdf_integral - 0.7).abs() < 1e-4 && (r.valid_fraction - 0.7).abs() < 0.005);
+}
