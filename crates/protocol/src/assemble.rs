@@ -4,7 +4,8 @@
 //! pixel's f64 sums are formed in the same order whatever worker rendered what and however
 //! often a task was retried; the image is therefore bitwise-identical for any number of
 //! workers. The beauty value is the box-filtered mean `sum / count` (DESIGN §3), the variance
-//! layer the estimated variance of that mean, `(Σx² − (Σx)²/n) / (n (n − 1))`.
+//! layer the estimated variance of that mean, `(Σx² − n·mean²) / (n − 1) / n` — the formulas
+//! and operation order of `render::film::Pixel`, so a farm image equals a local render bit for bit.
 
 use crate::frame::{PixelRecord, TileResult};
 
@@ -106,19 +107,20 @@ impl ImageAccumulator {
             spp: Vec::with_capacity(n),
         };
         for p in &self.pixels {
-            let cnt = p.count as f64;
-            let inv = if p.count > 0 { 1.0 / cnt } else { 0.0 };
+            // The same formulas, in the same f64 operation order, as `render::film::Pixel`, so
+            // a farm image equals a local render bit for bit.
+            let n = p.count.max(1) as f64;
             for c in 0..3 {
-                let mean = p.sum[c] * inv;
+                let mean = p.sum[c] / n;
                 out.beauty.push(mean as f32);
-                let var = if p.count > 1 {
-                    ((p.sum_sq[c] - p.sum[c] * mean) / (cnt * (cnt - 1.0))).max(0.0)
-                } else {
+                let var = if p.count < 2 {
                     0.0
+                } else {
+                    ((p.sum_sq[c] - n * mean * mean) / (n - 1.0)).max(0.0) / n
                 };
                 out.variance.push(var as f32);
-                out.albedo.push((p.albedo[c] * inv) as f32);
-                out.normal.push((p.normal[c] * inv) as f32);
+                out.albedo.push((p.albedo[c] / n) as f32);
+                out.normal.push((p.normal[c] / n) as f32);
             }
             out.spp.push(p.count);
         }

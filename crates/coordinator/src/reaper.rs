@@ -1,0 +1,57 @@
+//! The reaper: a background loop that reclaims expired leases (counting a failed attempt
+//! against the task, and against the worker for that job) and finishes jobs whose last phase
+//! is complete but not yet finished (e.g. the coordinator died between the last upload and
+//! the image assembly). Each pass reads everything it needs from the store, so several
+//! coordinators may run reapers against one PostgreSQL safely: every transition is a
+//! conditional update that only one of them wins.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use protocol::lease::JobState;
+
+use crate::AppState;
+use crate::store::StoreError;
+
+/// Runs passes every `reaper_interval_ms` until `stop` turns true.
+pub async fn run(state: Arc<AppState>, mut stop: tokio::sync::watch::Receiver<bool>) {
+    let period = Duration::from_millis(state.config.reaper_interval_ms.max(10));
+    loop {
+        if let Err(e) = pass(&state).await {
+            tracing::warn!(error = %e, "reaper pass failed");
+        }
+        tokio::select! {
+            _ = tokio::time::sleep(period) => {}
+            _ = stop.changed() => return,
+        }
+    }
+}
+
+/// One pass: expire leases, fail jobs over the retry cap, finish complete jobs.
+#[tracing::instrument(skip_all)]
+pub async fn pass(state: &AppState) -> Result<(), StoreError> {
+    let store = &state.store;
+    let mut freed = false;
+    for (task_id, attempt, worker) in store.expired_leases().await? {
+        if let Some((failures, job_id)) = store.fail_attempt(task_id, attempt, worker).await? {
+            tracing::info!(task = task_id, attempt, failures, "lease expired");
+            freed = true;
+            if failures >= i64::from(state.config.max_attempts) {
+                let msg = format!(
+                    "task {task_id} failed {failures} attempts (retry cap {})",
+                    state.config.max_attempts
+                );
+                store.end_job(job_id, JobState::Failed, Some(&msg)).await?;
+            }
+        }
+    }
+    if freed {
+        state.work_available.notify_waiters();
+    }
+    for job_id in store.finishable_jobs().await? {
+        if let Err(e) = crate::finish::finish_job(state, job_id).await {
+            tracing::error!(job = job_id, error = %e, "finishing failed");
+        }
+    }
+    Ok(())
+}

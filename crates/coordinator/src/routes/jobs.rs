@@ -1,0 +1,297 @@
+//! Jobs: submit, list, status, cancel, outputs.
+//!
+//! Submission validates everything before anything is stored: JSON shape (unknown fields
+//! rejected), the estimator (known but unimplemented kinds → 422 `unsupported`), limits
+//! (resolution, spp, tile size, task count), the scene (parsed, every asset it names mapped
+//! to an uploaded blob, then loaded by `scene::load` over those blobs). The job, its phase
+//! and all its tasks are then created in one transaction.
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+
+use axum::body::Bytes;
+use axum::extract::rejection::{BytesRejection, PathRejection};
+use axum::extract::{Path, State};
+use axum::http::{HeaderMap, StatusCode, header};
+use axum::response::IntoResponse;
+use axum::routing::{get, post};
+use axum::{Json, Router};
+use protocol::hash::{is_content_address, sha256_hex};
+use protocol::job::{SceneSource, plan_tasks};
+use protocol::lease::{JobState, JobStatus, PhaseKind, SubmitResponse};
+use protocol::{ApiError, JobSpec};
+use scene::SceneDesc;
+
+use super::parse_json;
+use crate::AppState;
+use crate::auth::require_token;
+use crate::error::{AppError, AppResult};
+use crate::finish::OUTPUTS;
+use crate::store::JobRow;
+
+/// Routes of this module.
+pub fn router() -> Router<Arc<AppState>> {
+    Router::new()
+        .route("/v1/jobs", post(submit).get(list))
+        .route("/v1/jobs/{id}", get(status))
+        .route("/v1/jobs/{id}/cancel", post(cancel))
+        .route("/v1/jobs/{id}/{output}", get(output))
+}
+
+/// Asset names a scene description refers to (meshes, bitmaps, env map).
+pub fn referenced_assets(desc: &SceneDesc) -> Vec<String> {
+    let mut names = Vec::new();
+    for s in &desc.shapes {
+        match &s.geometry {
+            scene::desc::GeometryDesc::Obj { filename, .. }
+            | scene::desc::GeometryDesc::Ply { filename, .. } => {
+                names.push(filename.clone());
+            }
+            _ => {}
+        }
+    }
+    for t in desc.textures.values() {
+        if let scene::desc::TextureDesc::Bitmap { filename, .. } = t {
+            names.push(filename.clone());
+        }
+    }
+    if let Some(scene::desc::EnvironmentDesc::Envmap { filename, .. }) = &desc.environment {
+        names.push(filename.clone());
+    }
+    names
+}
+
+fn invalid_scene(message: impl Into<String>, field: &str) -> AppError {
+    AppError::unprocessable("invalid_scene", message, Some(field))
+}
+
+#[tracing::instrument(skip_all)]
+async fn submit(
+    State(st): State<Arc<AppState>>,
+    headers: HeaderMap,
+    body: Result<Bytes, BytesRejection>,
+) -> AppResult<(StatusCode, Json<SubmitResponse>)> {
+    require_token(&headers, &st.config.client_tokens)?;
+    let body = body?;
+    let spec: JobSpec = parse_json(&body)?;
+
+    // The scene document and its address.
+    let (desc, scene_bytes) = match &spec.scene {
+        SceneSource::Inline(desc) => {
+            let bytes = serde_json::to_vec(desc).map_err(|e| AppError::Internal(e.to_string()))?;
+            ((**desc).clone(), bytes)
+        }
+        SceneSource::Bundle(hash) => {
+            if !is_content_address(hash) {
+                return Err(invalid_scene(
+                    "scene bundle address must be 64 lower-case hex digits",
+                    "scene.bundle",
+                ));
+            }
+            let bytes = st.store.get_blob(hash).await?.ok_or_else(|| {
+                invalid_scene(
+                    format!("scene bundle {hash} has not been uploaded"),
+                    "scene.bundle",
+                )
+            })?;
+            let desc: SceneDesc = serde_json::from_slice(&bytes).map_err(|e| {
+                invalid_scene(
+                    format!("scene bundle is not a native scene: {e}"),
+                    "scene.bundle",
+                )
+            })?;
+            (desc, bytes)
+        }
+    };
+    let scene_hash = sha256_hex(&scene_bytes);
+
+    let resolved = spec
+        .resolve(&desc, &st.config.limits)
+        .map_err(|e| AppError::Unprocessable(ApiError::from(e)))?;
+
+    // Every asset the scene names must be mapped and uploaded.
+    let mut assets = BTreeMap::new();
+    for name in referenced_assets(&desc) {
+        let Some(hash) = spec.assets.get(&name) else {
+            return Err(AppError::unprocessable(
+                "missing_asset",
+                format!(
+                    "the scene names asset `{name}` but `assets` does not map it to an uploaded sha256"
+                ),
+                Some(&format!("assets.{name}")),
+            ));
+        };
+        let Some(bytes) = st.store.get_blob(hash).await? else {
+            return Err(AppError::unprocessable(
+                "missing_asset",
+                format!("asset `{name}` ({hash}) has not been uploaded (PUT /v1/assets/{hash})"),
+                Some(&format!("assets.{name}")),
+            ));
+        };
+        assets.insert(name, bytes);
+    }
+    validate_scene(desc, assets).await?;
+
+    st.store.put_blob(&scene_hash, &scene_bytes).await?;
+    let mut stored = spec.clone();
+    stored.scene = SceneSource::Bundle(scene_hash.clone());
+    let stored_json =
+        serde_json::to_string(&stored).map_err(|e| AppError::Internal(e.to_string()))?;
+    let plan = plan_tasks(&resolved);
+    let job_id = st
+        .store
+        .create_job(
+            &stored_json,
+            &resolved,
+            &scene_hash,
+            spec.estimator.name(),
+            i64::from(spec.priority),
+            &plan,
+        )
+        .await?;
+    tracing::info!(job = job_id, tasks = plan.len(), "job submitted");
+    st.work_available.notify_waiters();
+    Ok((
+        StatusCode::CREATED,
+        Json(SubmitResponse {
+            job_id,
+            tasks: plan.len() as u64,
+        }),
+    ))
+}
+
+/// Loads the scene with `scene`'s validator over the uploaded assets (CPU work, off the
+/// async threads). The coordinator never builds render structures, it only validates.
+async fn validate_scene(desc: SceneDesc, assets: BTreeMap<String, Vec<u8>>) -> AppResult<()> {
+    tokio::task::spawn_blocking(move || crate::routes::jobs::load_scene(&desc, assets))
+        .await
+        .map_err(|e| AppError::Internal(e.to_string()))?
+}
+
+/// Scene validation proper: loads `desc` with `scene::load` over in-memory assets.
+pub fn load_scene(desc: &SceneDesc, assets: BTreeMap<String, Vec<u8>>) -> AppResult<()> {
+    let mut mem = scene::MemoryAssets::new();
+    for (name, bytes) in assets {
+        mem.insert(&name, bytes)
+            .map_err(|e| invalid_scene(e.to_string(), &format!("assets.{name}")))?;
+    }
+    scene::load(desc, &mem)
+        .map(|_| ())
+        .map_err(|e| invalid_scene(e.to_string(), "scene"))
+}
+
+fn job_status(job: &JobRow, progress: crate::store::Progress) -> AppResult<JobStatus> {
+    Ok(JobStatus {
+        job_id: job.id,
+        state: job.state,
+        phase: PhaseKind::Render,
+        estimator: job.estimator.clone(),
+        priority: job.priority as i32,
+        tasks_total: progress.total.max(0) as u64,
+        tasks_done: progress.done.max(0) as u64,
+        job: job.resolved,
+        error: job.error.clone(),
+    })
+}
+
+async fn load_job(st: &AppState, id: Result<Path<i64>, PathRejection>) -> AppResult<JobRow> {
+    let Path(id) = id?;
+    st.store
+        .job(id)
+        .await?
+        .ok_or_else(|| AppError::NotFound(format!("job {id}")))
+}
+
+async fn status(
+    State(st): State<Arc<AppState>>,
+    headers: HeaderMap,
+    id: Result<Path<i64>, PathRejection>,
+) -> AppResult<Json<JobStatus>> {
+    require_token(&headers, &st.config.client_tokens)?;
+    let job = load_job(&st, id).await?;
+    let progress = st.store.progress(job.id, job.phase_idx).await?;
+    Ok(Json(job_status(&job, progress)?))
+}
+
+async fn list(
+    State(st): State<Arc<AppState>>,
+    headers: HeaderMap,
+) -> AppResult<Json<Vec<JobStatus>>> {
+    require_token(&headers, &st.config.client_tokens)?;
+    let mut out = Vec::new();
+    for job in st.store.jobs(1000).await? {
+        let progress = st.store.progress(job.id, job.phase_idx).await?;
+        out.push(job_status(&job, progress)?);
+    }
+    Ok(Json(out))
+}
+
+async fn cancel(
+    State(st): State<Arc<AppState>>,
+    headers: HeaderMap,
+    id: Result<Path<i64>, PathRejection>,
+) -> AppResult<Json<JobStatus>> {
+    require_token(&headers, &st.config.client_tokens)?;
+    let job = load_job(&st, id).await?;
+    if !st
+        .store
+        .end_job(job.id, JobState::Cancelled, Some("cancelled by client"))
+        .await?
+    {
+        return Err(AppError::conflict(
+            "not_running",
+            format!("job {} is {}", job.id, job.state.as_str()),
+        ));
+    }
+    let job = st
+        .store
+        .job(job.id)
+        .await?
+        .ok_or_else(|| AppError::NotFound(format!("job {}", job.id)))?;
+    let progress = st.store.progress(job.id, job.phase_idx).await?;
+    Ok(Json(job_status(&job, progress)?))
+}
+
+async fn output(
+    State(st): State<Arc<AppState>>,
+    headers: HeaderMap,
+    path: Result<Path<(i64, String)>, PathRejection>,
+) -> AppResult<impl IntoResponse> {
+    require_token(&headers, &st.config.client_tokens)?;
+    let Path((id, name)) = path?;
+    if !OUTPUTS.iter().any(|(n, _)| *n == name) {
+        return Err(AppError::NotFound(format!(
+            "output `{name}` (available: image.exr, preview.png, stats.json)"
+        )));
+    }
+    let job = st
+        .store
+        .job(id)
+        .await?
+        .ok_or_else(|| AppError::NotFound(format!("job {id}")))?;
+    match job.state {
+        JobState::Done => {}
+        JobState::Running => {
+            return Err(AppError::conflict(
+                "not_finished",
+                format!("job {id} is still running"),
+            ));
+        }
+        other => {
+            return Err(AppError::conflict(
+                "no_output",
+                format!(
+                    "job {id} is {}: {}",
+                    other.as_str(),
+                    job.error.unwrap_or_default()
+                ),
+            ));
+        }
+    }
+    let (ctype, data) = st
+        .store
+        .artifact(id, &name)
+        .await?
+        .ok_or_else(|| AppError::NotFound(format!("output {name} of job {id}")))?;
+    Ok(([(header::CONTENT_TYPE, ctype)], data))
+}

@@ -1,0 +1,797 @@
+//! The store: every piece of coordinator state lives here, in SQLite or PostgreSQL.
+//!
+//! One implementation serves both backends through `sqlx::Any` (SQL written once with `?`
+//! placeholders, rewritten to `$n` for PostgreSQL); the two places where the dialects differ
+//! (lease claim with `FOR UPDATE SKIP LOCKED`, SQLite's WAL pragma) branch on [`Backend`].
+//! Migrations are embedded per backend (`migrations/sqlite`, `migrations/postgres`).
+//!
+//! Invariants kept by the queries (each is a single atomic statement or one transaction):
+//! - a task is `pending`, `leased` (to one worker, with an attempt number and an expiry) or
+//!   `done` (with exactly one stored result, keyed by the accepted attempt);
+//! - each lease increments the attempt, so an upload naming an older attempt is stale;
+//! - a result is accepted only from the worker holding the current attempt's lease, and
+//!   re-uploading an accepted (task, attempt) is a no-op.
+
+use std::time::{SystemTime, UNIX_EPOCH};
+
+use protocol::job::{ResolvedJob, TaskPlan, TileRect};
+use protocol::lease::{JobState, PhaseKind};
+use sqlx::any::{AnyPoolOptions, AnyRow};
+use sqlx::{AnyPool, Row};
+
+/// Which database is behind the pool.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Backend {
+    /// SQLite file (single writer, WAL).
+    Sqlite,
+    /// PostgreSQL server.
+    Postgres,
+}
+
+/// Database errors.
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    /// The driver failed.
+    #[error("database: {0}")]
+    Db(#[from] sqlx::Error),
+    /// Migrations failed.
+    #[error("migration: {0}")]
+    Migrate(#[from] sqlx::migrate::MigrateError),
+    /// The URL names no supported backend.
+    #[error("unsupported database URL `{0}` (expected sqlite:… or postgres://…)")]
+    BadUrl(String),
+    /// A stored value does not parse (corrupt row).
+    #[error("corrupt row: {0}")]
+    Corrupt(String),
+}
+
+type Result<T> = std::result::Result<T, StoreError>;
+
+/// Milliseconds since the Unix epoch.
+pub fn now_ms() -> i64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_millis() as i64)
+        .unwrap_or(0)
+}
+
+/// A connection pool plus the backend it talks to.
+#[derive(Clone, Debug)]
+pub struct Store {
+    pool: AnyPool,
+    backend: Backend,
+}
+
+/// A job row.
+#[derive(Clone, Debug)]
+pub struct JobRow {
+    /// Id.
+    pub id: i64,
+    /// JobSpec JSON (scene replaced by its bundle hash).
+    pub spec: String,
+    /// Resolved settings.
+    pub resolved: ResolvedJob,
+    /// Scene document address.
+    pub scene_hash: String,
+    /// Estimator name.
+    pub estimator: String,
+    /// Priority.
+    pub priority: i64,
+    /// State.
+    pub state: JobState,
+    /// Active phase index.
+    pub phase_idx: i64,
+    /// Failure reason.
+    pub error: Option<String>,
+    /// Submission time.
+    pub created_ms: i64,
+    /// Completion time.
+    pub finished_ms: Option<i64>,
+}
+
+/// A task as leased.
+#[derive(Clone, Debug)]
+pub struct LeasedTask {
+    /// Task id.
+    pub id: i64,
+    /// Job id.
+    pub job_id: i64,
+    /// Phase index.
+    pub phase_idx: i64,
+    /// Pixels.
+    pub rect: TileRect,
+    /// Sample range start.
+    pub sample_start: u32,
+    /// Sample range end.
+    pub sample_end: u32,
+    /// Attempt number of this lease.
+    pub attempt: i64,
+}
+
+/// What the store knows of a task, for validating uploads.
+#[derive(Clone, Debug)]
+pub struct TaskRow {
+    /// Task id.
+    pub id: i64,
+    /// Job id.
+    pub job_id: i64,
+    /// Phase index.
+    pub phase_idx: i64,
+    /// Pixels.
+    pub rect: TileRect,
+    /// Sample range start.
+    pub sample_start: u32,
+    /// Sample range end.
+    pub sample_end: u32,
+    /// `pending`, `leased` or `done`.
+    pub state: String,
+    /// Current attempt.
+    pub attempt: i64,
+    /// Lease holder.
+    pub worker_id: Option<i64>,
+    /// Accepted attempt, when done.
+    pub done_attempt: Option<i64>,
+}
+
+/// Outcome of a result upload.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum UploadOutcome {
+    /// Stored now.
+    Accepted,
+    /// This (task, attempt) had been stored before.
+    Duplicate,
+    /// The attempt is not the task's current lease of this worker.
+    Stale,
+}
+
+/// Progress of a phase.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Progress {
+    /// Tasks in the phase.
+    pub total: i64,
+    /// Tasks done.
+    pub done: i64,
+    /// Sum of attempts over the phase's tasks.
+    pub attempts: i64,
+}
+
+fn u32_of(row: &AnyRow, col: &str) -> Result<u32> {
+    let v: i64 = row.try_get(col)?;
+    u32::try_from(v).map_err(|_| StoreError::Corrupt(format!("{col} = {v}")))
+}
+
+fn rect_of(row: &AnyRow) -> Result<TileRect> {
+    Ok(TileRect {
+        x0: u32_of(row, "x0")?,
+        y0: u32_of(row, "y0")?,
+        width: u32_of(row, "width")?,
+        height: u32_of(row, "height")?,
+    })
+}
+
+fn job_of(row: &AnyRow) -> Result<JobRow> {
+    let resolved: String = row.try_get("resolved")?;
+    let state: String = row.try_get("state")?;
+    Ok(JobRow {
+        id: row.try_get("id")?,
+        spec: row.try_get("spec")?,
+        resolved: serde_json::from_str(&resolved)
+            .map_err(|e| StoreError::Corrupt(e.to_string()))?,
+        scene_hash: row.try_get("scene_hash")?,
+        estimator: row.try_get("estimator")?,
+        priority: row.try_get("priority")?,
+        state: JobState::parse(&state)
+            .ok_or_else(|| StoreError::Corrupt(format!("job state {state}")))?,
+        phase_idx: row.try_get("phase_idx")?,
+        error: row.try_get("error")?,
+        created_ms: row.try_get("created_ms")?,
+        finished_ms: row.try_get("finished_ms")?,
+    })
+}
+
+const JOB_COLS: &str = "id, spec, resolved, scene_hash, estimator, priority, state, phase_idx, error, created_ms, finished_ms";
+const TASK_COLS: &str = "id, job_id, phase_idx, x0, y0, width, height, sample_start, sample_end, state, attempt, worker_id, done_attempt";
+
+impl Store {
+    /// Connects (creating the SQLite file if needed) and runs the embedded migrations.
+    pub async fn connect(url: &str) -> Result<Self> {
+        sqlx::any::install_default_drivers();
+        let backend = if url.starts_with("sqlite:") {
+            Backend::Sqlite
+        } else if url.starts_with("postgres://") || url.starts_with("postgresql://") {
+            Backend::Postgres
+        } else {
+            return Err(StoreError::BadUrl(url.to_owned()));
+        };
+        let pool = match backend {
+            // SQLite has one writer: one connection serialises everything and avoids
+            // SQLITE_BUSY upgrades inside transactions.
+            Backend::Sqlite => {
+                AnyPoolOptions::new()
+                    .max_connections(1)
+                    .connect(url)
+                    .await?
+            }
+            Backend::Postgres => {
+                AnyPoolOptions::new()
+                    .max_connections(8)
+                    .connect(url)
+                    .await?
+            }
+        };
+        let store = Self { pool, backend };
+        match backend {
+            Backend::Sqlite => {
+                sqlx::query("PRAGMA journal_mode = WAL")
+                    .execute(&store.pool)
+                    .await?;
+                sqlx::query("PRAGMA busy_timeout = 5000")
+                    .execute(&store.pool)
+                    .await?;
+                sqlx::migrate!("../../migrations/sqlite")
+                    .run(&store.pool)
+                    .await?;
+            }
+            Backend::Postgres => {
+                sqlx::migrate!("../../migrations/postgres")
+                    .run(&store.pool)
+                    .await?
+            }
+        }
+        Ok(store)
+    }
+
+    /// The backend.
+    pub fn backend(&self) -> Backend {
+        self.backend
+    }
+
+    /// Closes the pool (waits for connections to be returned).
+    pub async fn close(&self) {
+        self.pool.close().await;
+    }
+
+    /// Rewrites `?` placeholders to `$1, $2, …` for PostgreSQL.
+    fn sql(&self, s: &str) -> String {
+        match self.backend {
+            Backend::Sqlite => s.to_owned(),
+            Backend::Postgres => {
+                let mut out = String::with_capacity(s.len() + 16);
+                let mut n = 0;
+                for ch in s.chars() {
+                    if ch == '?' {
+                        n += 1;
+                        out.push('$');
+                        out.push_str(&n.to_string());
+                    } else {
+                        out.push(ch);
+                    }
+                }
+                out
+            }
+        }
+    }
+
+    /// `SELECT 1`, for `/healthz`.
+    pub async fn ping(&self) -> Result<()> {
+        sqlx::query("SELECT 1").execute(&self.pool).await?;
+        Ok(())
+    }
+
+    // ---- blobs -------------------------------------------------------------------------
+
+    /// Stores a content-addressed blob (no-op when present).
+    pub async fn put_blob(&self, hash: &str, data: &[u8]) -> Result<()> {
+        let sql = self.sql("INSERT INTO blobs (hash, data, created_ms) VALUES (?, ?, ?) ON CONFLICT (hash) DO NOTHING");
+        sqlx::query(&sql)
+            .bind(hash)
+            .bind(data.to_vec())
+            .bind(now_ms())
+            .execute(&self.pool)
+            .await?;
+        Ok(())
+    }
+
+    /// A blob by address.
+    pub async fn get_blob(&self, hash: &str) -> Result<Option<Vec<u8>>> {
+        let sql = self.sql("SELECT data FROM blobs WHERE hash = ?");
+        let row = sqlx::query(&sql)
+            .bind(hash)
+            .fetch_optional(&self.pool)
+            .await?;
+        Ok(match row {
+            Some(r) => Some(r.try_get("data")?),
+            None => None,
+        })
+    }
+
+    /// Whether a blob exists.
+    pub async fn has_blob(&self, hash: &str) -> Result<bool> {
+        let sql = self.sql("SELECT hash FROM blobs WHERE hash = ?");
+        Ok(sqlx::query(&sql)
+            .bind(hash)
+            .fetch_optional(&self.pool)
+            .await?
+            .is_some())
+    }
+
+    // ---- workers -----------------------------------------------------------------------
+
+    /// Registers a worker with the hash of its secret; returns its id.
+    pub async fn add_worker(&self, name: &str, secret_hash: &str) -> Result<i64> {
+        let now = now_ms();
+        let sql = self.sql(
+            "INSERT INTO workers (name, secret_hash, created_ms, last_seen_ms) VALUES (?, ?, ?, ?) RETURNING id",
+        );
+        let row = sqlx::query(&sql)
+            .bind(name)
+            .bind(secret_hash)
+            .bind(now)
+            .bind(now)
+            .fetch_one(&self.pool)
+            .await?;
+        Ok(row.try_get("id")?)
+    }
+
+    /// The stored secret hash of a worker.
+    pub async fn worker_secret_hash(&self, id: i64) -> Result<Option<String>> {
+        let sql = self.sql("SELECT secret_hash FROM workers WHERE id = ?");
+        let row = sqlx::query(&sql)
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?;
+        Ok(match row {
+            Some(r) => Some(r.try_get("secret_hash")?),
+            None => None,
+        })
+    }
+
+    // ---- jobs --------------------------------------------------------------------------
+
+    /// Creates a job with one `render` phase and its tasks, in one transaction.
+    pub async fn create_job(
+        &self,
+        spec_json: &str,
+        resolved: &ResolvedJob,
+        scene_hash: &str,
+        estimator: &str,
+        priority: i64,
+        plan: &[TaskPlan],
+    ) -> Result<i64> {
+        let now = now_ms();
+        let resolved_json =
+            serde_json::to_string(resolved).map_err(|e| StoreError::Corrupt(e.to_string()))?;
+        let mut tx = self.pool.begin().await?;
+        let sql = self.sql(
+            "INSERT INTO jobs (spec, resolved, scene_hash, estimator, priority, state, phase_idx, created_ms) \
+             VALUES (?, ?, ?, ?, ?, 'running', 0, ?) RETURNING id",
+        );
+        let row = sqlx::query(&sql)
+            .bind(spec_json)
+            .bind(resolved_json)
+            .bind(scene_hash)
+            .bind(estimator)
+            .bind(priority)
+            .bind(now)
+            .fetch_one(&mut *tx)
+            .await?;
+        let job_id: i64 = row.try_get("id")?;
+        let sql = self.sql("INSERT INTO phases (job_id, idx, name) VALUES (?, 0, ?)");
+        sqlx::query(&sql)
+            .bind(job_id)
+            .bind(PhaseKind::Render.as_str())
+            .execute(&mut *tx)
+            .await?;
+        // Multi-row inserts keep large plans fast (100 rows × 9 parameters per statement).
+        for chunk in plan.chunks(100) {
+            let mut s = String::from(
+                "INSERT INTO tasks (job_id, phase_idx, seq, x0, y0, width, height, sample_start, sample_end, state) VALUES ",
+            );
+            for i in 0..chunk.len() {
+                if i > 0 {
+                    s.push(',');
+                }
+                s.push_str("(?, 0, ?, ?, ?, ?, ?, ?, ?, 'pending')");
+            }
+            let sql = self.sql(&s);
+            let mut q = sqlx::query(&sql);
+            for t in chunk {
+                q = q
+                    .bind(job_id)
+                    .bind(i64::from(t.seq))
+                    .bind(i64::from(t.rect.x0))
+                    .bind(i64::from(t.rect.y0))
+                    .bind(i64::from(t.rect.width))
+                    .bind(i64::from(t.rect.height))
+                    .bind(i64::from(t.sample_start))
+                    .bind(i64::from(t.sample_end));
+            }
+            q.execute(&mut *tx).await?;
+        }
+        tx.commit().await?;
+        Ok(job_id)
+    }
+
+    /// A job by id.
+    pub async fn job(&self, id: i64) -> Result<Option<JobRow>> {
+        let sql = self.sql(&format!("SELECT {JOB_COLS} FROM jobs WHERE id = ?"));
+        match sqlx::query(&sql)
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?
+        {
+            Some(r) => Ok(Some(job_of(&r)?)),
+            None => Ok(None),
+        }
+    }
+
+    /// All jobs, newest first (at most `limit`).
+    pub async fn jobs(&self, limit: i64) -> Result<Vec<JobRow>> {
+        let sql = self.sql(&format!(
+            "SELECT {JOB_COLS} FROM jobs ORDER BY id DESC LIMIT ?"
+        ));
+        sqlx::query(&sql)
+            .bind(limit)
+            .fetch_all(&self.pool)
+            .await?
+            .iter()
+            .map(job_of)
+            .collect()
+    }
+
+    /// Ids of running jobs whose active phase has no unfinished task (ready to finish).
+    pub async fn finishable_jobs(&self) -> Result<Vec<i64>> {
+        let sql = "SELECT j.id FROM jobs j WHERE j.state = 'running' AND NOT EXISTS \
+                   (SELECT 1 FROM tasks t WHERE t.job_id = j.id AND t.phase_idx = j.phase_idx AND t.state <> 'done')";
+        let rows = sqlx::query(sql).fetch_all(&self.pool).await?;
+        rows.iter().map(|r| Ok(r.try_get("id")?)).collect()
+    }
+
+    /// Sets a running job's state (done/failed/cancelled); returns whether it changed.
+    pub async fn end_job(&self, id: i64, state: JobState, error: Option<&str>) -> Result<bool> {
+        let sql = self.sql("UPDATE jobs SET state = ?, error = ?, finished_ms = ? WHERE id = ? AND state = 'running'");
+        let r = sqlx::query(&sql)
+            .bind(state.as_str())
+            .bind(error.map(str::to_owned))
+            .bind(now_ms())
+            .bind(id)
+            .execute(&self.pool)
+            .await?;
+        Ok(r.rows_affected() == 1)
+    }
+
+    /// Progress of a job's phase.
+    pub async fn progress(&self, job_id: i64, phase_idx: i64) -> Result<Progress> {
+        let sql = self.sql(
+            "SELECT COUNT(*) AS total, \
+                    CAST(COALESCE(SUM(CASE WHEN state = 'done' THEN 1 ELSE 0 END), 0) AS BIGINT) AS done, \
+                    CAST(COALESCE(SUM(attempt), 0) AS BIGINT) AS attempts \
+             FROM tasks WHERE job_id = ? AND phase_idx = ?",
+        );
+        let r = sqlx::query(&sql)
+            .bind(job_id)
+            .bind(phase_idx)
+            .fetch_one(&self.pool)
+            .await?;
+        Ok(Progress {
+            total: r.try_get("total")?,
+            done: r.try_get("done")?,
+            attempts: r.try_get("attempts")?,
+        })
+    }
+
+    /// Phase timing: (name, started_ms, last done_ms).
+    pub async fn phase_times(
+        &self,
+        job_id: i64,
+    ) -> Result<Vec<(String, Option<i64>, Option<i64>)>> {
+        let sql = self.sql(
+            "SELECT p.name AS name, p.started_ms AS started_ms, \
+                    (SELECT MAX(t.done_ms) FROM tasks t WHERE t.job_id = p.job_id AND t.phase_idx = p.idx) AS last_ms \
+             FROM phases p WHERE p.job_id = ? ORDER BY p.idx",
+        );
+        let rows = sqlx::query(&sql).bind(job_id).fetch_all(&self.pool).await?;
+        rows.iter()
+            .map(|r| {
+                Ok((
+                    r.try_get("name")?,
+                    r.try_get("started_ms")?,
+                    r.try_get("last_ms")?,
+                ))
+            })
+            .collect()
+    }
+
+    /// Accepted results of a phase in canonical task order.
+    pub async fn phase_results(&self, job_id: i64, phase_idx: i64) -> Result<Vec<Vec<u8>>> {
+        let sql = self.sql(
+            "SELECT r.data AS data FROM tasks t JOIN results r ON r.task_id = t.id AND r.attempt = t.done_attempt \
+             WHERE t.job_id = ? AND t.phase_idx = ? ORDER BY t.seq",
+        );
+        let rows = sqlx::query(&sql)
+            .bind(job_id)
+            .bind(phase_idx)
+            .fetch_all(&self.pool)
+            .await?;
+        rows.iter().map(|r| Ok(r.try_get("data")?)).collect()
+    }
+
+    /// Stores an output of a job (no-op when present: outputs are deterministic).
+    pub async fn put_artifact(
+        &self,
+        job_id: i64,
+        name: &str,
+        content_type: &str,
+        data: &[u8],
+    ) -> Result<()> {
+        let sql = self.sql(
+            "INSERT INTO artifacts (job_id, name, content_type, data) VALUES (?, ?, ?, ?) \
+             ON CONFLICT (job_id, name) DO NOTHING",
+        );
+        sqlx::query(&sql)
+            .bind(job_id)
+            .bind(name)
+            .bind(content_type)
+            .bind(data.to_vec())
+            .execute(&self.pool)
+            .await?;
+        Ok(())
+    }
+
+    /// An output of a job: (content type, bytes).
+    pub async fn artifact(&self, job_id: i64, name: &str) -> Result<Option<(String, Vec<u8>)>> {
+        let sql =
+            self.sql("SELECT content_type, data FROM artifacts WHERE job_id = ? AND name = ?");
+        match sqlx::query(&sql)
+            .bind(job_id)
+            .bind(name)
+            .fetch_optional(&self.pool)
+            .await?
+        {
+            Some(r) => Ok(Some((r.try_get("content_type")?, r.try_get("data")?))),
+            None => Ok(None),
+        }
+    }
+
+    // ---- queue -------------------------------------------------------------------------
+
+    /// Claims the next pending task for `worker_id`: highest priority first, FIFO within a
+    /// priority, canonical order within a job; skips jobs that blocked this worker.
+    pub async fn claim(
+        &self,
+        worker_id: i64,
+        lease_ms: i64,
+        max_worker_failures: i64,
+    ) -> Result<Option<LeasedTask>> {
+        let lock = match self.backend {
+            Backend::Postgres => " FOR UPDATE OF t SKIP LOCKED",
+            Backend::Sqlite => "",
+        };
+        let now = now_ms();
+        let sql = self.sql(&format!(
+            "UPDATE tasks SET state = 'leased', attempt = attempt + 1, worker_id = ?, lease_expires_ms = ? \
+             WHERE state = 'pending' AND id = ( \
+               SELECT t.id FROM tasks t JOIN jobs j ON j.id = t.job_id \
+               WHERE t.state = 'pending' AND j.state = 'running' AND t.phase_idx = j.phase_idx \
+                 AND NOT EXISTS (SELECT 1 FROM worker_job_failures f \
+                                 WHERE f.job_id = t.job_id AND f.worker_id = ? AND f.failures >= ?) \
+               ORDER BY j.priority DESC, j.id ASC, t.seq ASC LIMIT 1{lock}) \
+             RETURNING id, job_id, phase_idx, x0, y0, width, height, sample_start, sample_end, attempt"
+        ));
+        let row = sqlx::query(&sql)
+            .bind(worker_id)
+            .bind(now + lease_ms)
+            .bind(worker_id)
+            .bind(max_worker_failures)
+            .fetch_optional(&self.pool)
+            .await?;
+        let Some(r) = row else { return Ok(None) };
+        let task = LeasedTask {
+            id: r.try_get("id")?,
+            job_id: r.try_get("job_id")?,
+            phase_idx: r.try_get("phase_idx")?,
+            rect: rect_of(&r)?,
+            sample_start: u32_of(&r, "sample_start")?,
+            sample_end: u32_of(&r, "sample_end")?,
+            attempt: r.try_get("attempt")?,
+        };
+        let sql = self.sql(
+            "UPDATE phases SET started_ms = ? WHERE job_id = ? AND idx = ? AND started_ms IS NULL",
+        );
+        sqlx::query(&sql)
+            .bind(now)
+            .bind(task.job_id)
+            .bind(task.phase_idx)
+            .execute(&self.pool)
+            .await?;
+        let sql = self.sql("UPDATE workers SET last_seen_ms = ? WHERE id = ?");
+        sqlx::query(&sql)
+            .bind(now)
+            .bind(worker_id)
+            .execute(&self.pool)
+            .await?;
+        Ok(Some(task))
+    }
+
+    /// A task by id.
+    pub async fn task(&self, id: i64) -> Result<Option<TaskRow>> {
+        let sql = self.sql(&format!("SELECT {TASK_COLS} FROM tasks WHERE id = ?"));
+        let Some(r) = sqlx::query(&sql)
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?
+        else {
+            return Ok(None);
+        };
+        Ok(Some(TaskRow {
+            id: r.try_get("id")?,
+            job_id: r.try_get("job_id")?,
+            phase_idx: r.try_get("phase_idx")?,
+            rect: rect_of(&r)?,
+            sample_start: u32_of(&r, "sample_start")?,
+            sample_end: u32_of(&r, "sample_end")?,
+            state: r.try_get("state")?,
+            attempt: r.try_get("attempt")?,
+            worker_id: r.try_get("worker_id")?,
+            done_attempt: r.try_get("done_attempt")?,
+        }))
+    }
+
+    /// Extends the lease of (task, attempt) held by `worker_id`; false when it is not held.
+    pub async fn heartbeat(
+        &self,
+        task_id: i64,
+        attempt: i64,
+        worker_id: i64,
+        lease_ms: i64,
+    ) -> Result<bool> {
+        let sql = self.sql(
+            "UPDATE tasks SET lease_expires_ms = ? WHERE id = ? AND attempt = ? AND worker_id = ? AND state = 'leased' \
+             AND EXISTS (SELECT 1 FROM jobs j WHERE j.id = tasks.job_id AND j.state = 'running')",
+        );
+        let r = sqlx::query(&sql)
+            .bind(now_ms() + lease_ms)
+            .bind(task_id)
+            .bind(attempt)
+            .bind(worker_id)
+            .execute(&self.pool)
+            .await?;
+        Ok(r.rows_affected() == 1)
+    }
+
+    /// Gives a lease back without counting a failure (graceful worker shutdown).
+    pub async fn release(&self, task_id: i64, attempt: i64, worker_id: i64) -> Result<bool> {
+        let sql = self.sql(
+            "UPDATE tasks SET state = 'pending', worker_id = NULL, lease_expires_ms = NULL \
+             WHERE id = ? AND attempt = ? AND worker_id = ? AND state = 'leased'",
+        );
+        let r = sqlx::query(&sql)
+            .bind(task_id)
+            .bind(attempt)
+            .bind(worker_id)
+            .execute(&self.pool)
+            .await?;
+        Ok(r.rows_affected() == 1)
+    }
+
+    /// Records a failed attempt (lease expired or worker reported failure): the task goes
+    /// back to pending, its failure count and the worker's count for the job grow. Returns
+    /// the task's failure count, or `None` when (task, attempt) was no longer leased.
+    pub async fn fail_attempt(
+        &self,
+        task_id: i64,
+        attempt: i64,
+        worker_id: Option<i64>,
+    ) -> Result<Option<(i64, i64)>> {
+        let mut tx = self.pool.begin().await?;
+        let sql = self.sql(
+            "UPDATE tasks SET state = 'pending', worker_id = NULL, lease_expires_ms = NULL, failures = failures + 1 \
+             WHERE id = ? AND attempt = ? AND state = 'leased' RETURNING failures, job_id",
+        );
+        let Some(r) = sqlx::query(&sql)
+            .bind(task_id)
+            .bind(attempt)
+            .fetch_optional(&mut *tx)
+            .await?
+        else {
+            return Ok(None);
+        };
+        let failures: i64 = r.try_get("failures")?;
+        let job_id: i64 = r.try_get("job_id")?;
+        if let Some(w) = worker_id {
+            let sql = self.sql(
+                "INSERT INTO worker_job_failures (job_id, worker_id, failures) VALUES (?, ?, 1) \
+                 ON CONFLICT (job_id, worker_id) DO UPDATE SET failures = worker_job_failures.failures + 1",
+            );
+            sqlx::query(&sql)
+                .bind(job_id)
+                .bind(w)
+                .execute(&mut *tx)
+                .await?;
+        }
+        tx.commit().await?;
+        Ok(Some((failures, job_id)))
+    }
+
+    /// Leases that expired before now: (task id, attempt, worker).
+    pub async fn expired_leases(&self) -> Result<Vec<(i64, i64, Option<i64>)>> {
+        let sql = self.sql(
+            "SELECT id, attempt, worker_id FROM tasks WHERE state = 'leased' AND lease_expires_ms < ? ORDER BY id LIMIT 1000",
+        );
+        let rows = sqlx::query(&sql)
+            .bind(now_ms())
+            .fetch_all(&self.pool)
+            .await?;
+        rows.iter()
+            .map(|r| {
+                Ok((
+                    r.try_get("id")?,
+                    r.try_get("attempt")?,
+                    r.try_get("worker_id")?,
+                ))
+            })
+            .collect()
+    }
+
+    /// Stores the result of (task, attempt) uploaded by `worker_id`, atomically with the
+    /// task's transition to `done`. Idempotent for an accepted (task, attempt).
+    pub async fn store_result(
+        &self,
+        task_id: i64,
+        attempt: i64,
+        worker_id: i64,
+        data: &[u8],
+    ) -> Result<UploadOutcome> {
+        let mut tx = self.pool.begin().await?;
+        let sql = self.sql("SELECT attempt FROM results WHERE task_id = ? AND attempt = ?");
+        if sqlx::query(&sql)
+            .bind(task_id)
+            .bind(attempt)
+            .fetch_optional(&mut *tx)
+            .await?
+            .is_some()
+        {
+            return Ok(UploadOutcome::Duplicate);
+        }
+        let now = now_ms();
+        let sql = self.sql(
+            "UPDATE tasks SET state = 'done', done_attempt = ?, done_ms = ?, lease_expires_ms = NULL \
+             WHERE id = ? AND attempt = ? AND worker_id = ? AND state = 'leased' \
+             AND EXISTS (SELECT 1 FROM jobs j WHERE j.id = tasks.job_id AND j.state = 'running')",
+        );
+        let r = sqlx::query(&sql)
+            .bind(attempt)
+            .bind(now)
+            .bind(task_id)
+            .bind(attempt)
+            .bind(worker_id)
+            .execute(&mut *tx)
+            .await?;
+        if r.rows_affected() != 1 {
+            return Ok(UploadOutcome::Stale);
+        }
+        let sql = self
+            .sql("INSERT INTO results (task_id, attempt, data, created_ms) VALUES (?, ?, ?, ?)");
+        sqlx::query(&sql)
+            .bind(task_id)
+            .bind(attempt)
+            .bind(data.to_vec())
+            .bind(now)
+            .execute(&mut *tx)
+            .await?;
+        tx.commit().await?;
+        Ok(UploadOutcome::Accepted)
+    }
+
+    /// Number of result rows stored for a job (tests: nothing rendered twice is stored twice).
+    pub async fn result_count(&self, job_id: i64) -> Result<i64> {
+        let sql = self.sql(
+            "SELECT COUNT(*) AS n FROM results r JOIN tasks t ON t.id = r.task_id WHERE t.job_id = ?",
+        );
+        Ok(sqlx::query(&sql)
+            .bind(job_id)
+            .fetch_one(&self.pool)
+            .await?
+            .try_get("n")?)
+    }
+}

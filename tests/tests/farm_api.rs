@@ -1,0 +1,412 @@
+//! The farm API under misuse: stale attempts, bad input of every kind (4xx + a JSON error
+//! naming the problem, nothing accepted lost), and a coordinator killed mid-job.
+
+use std::time::Duration;
+
+use e2e::{Backend, Client, Coordinator, ENROLL_TOKEN, TestDb, Worker, local_exr, scene_json};
+use protocol::TileResult;
+use protocol::frame::{PixelRecord, TileHeader};
+use protocol::lease::{JobState, TaskLease};
+
+fn small_spec(spp: u32) -> serde_json::Value {
+    serde_json::json!({
+        "scene": { "inline": scene_json("cornell-box/scene.json") },
+        "resolution": [16, 16],
+        "spp": spp,
+        "tile_size": 8,
+    })
+}
+
+/// A worker driven by hand through raw HTTP.
+struct FakeWorker {
+    c: Client,
+}
+
+impl FakeWorker {
+    fn register(url: &str) -> Self {
+        let enrol = Client::with_token(url, Some(ENROLL_TOKEN));
+        let r = enrol.request(
+            "POST",
+            "/v1/workers/register",
+            Some(br#"{"name":"fake"}"#.to_vec()),
+        );
+        assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+        let token = r.json()["token"].as_str().expect("token").to_owned();
+        Self {
+            c: Client::with_token(url, Some(&token)),
+        }
+    }
+
+    fn lease(&self) -> Option<TaskLease> {
+        let r = self.c.request(
+            "POST",
+            "/v1/workers/lease",
+            Some(br#"{"wait_ms":1000}"#.to_vec()),
+        );
+        match r.status {
+            200 => Some(serde_json::from_slice(&r.body).expect("lease")),
+            204 => None,
+            s => panic!("lease: {s} {}", String::from_utf8_lossy(&r.body)),
+        }
+    }
+
+    fn frame(l: &TaskLease, attempt: u32) -> Vec<u8> {
+        let n = l.rect.pixel_count();
+        TileResult {
+            header: TileHeader {
+                job_id: l.job_id,
+                task_id: l.task_id,
+                attempt,
+                rect: l.rect,
+                sample_start: l.sample_start,
+                sample_end: l.sample_end,
+            },
+            pixels: vec![
+                PixelRecord {
+                    count: u64::from(l.sample_end - l.sample_start),
+                    ..Default::default()
+                };
+                n
+            ],
+            cells: vec![],
+        }
+        .encode()
+    }
+
+    fn upload(&self, task: i64, attempt: u32, body: Vec<u8>) -> e2e::Resp {
+        self.c.request(
+            "PUT",
+            &format!("/v1/tasks/{task}/result?attempt={attempt}"),
+            Some(body),
+        )
+    }
+
+    fn heartbeat(&self, task: i64, attempt: u32) -> e2e::Resp {
+        self.c.request(
+            "POST",
+            &format!("/v1/tasks/{task}/heartbeat?attempt={attempt}"),
+            None,
+        )
+    }
+}
+
+#[test]
+fn stale_attempt_is_rejected_and_accepted_upload_is_idempotent() {
+    let db = TestDb::new(Backend::Sqlite);
+    let mut cfg = db.config();
+    cfg.lease_ms = 400;
+    cfg.max_attempts = 10;
+    let coord = Coordinator::start(cfg);
+    let client = Client::new(&coord.url());
+    let job = client.submit(&small_spec(2));
+    let a = FakeWorker::register(&coord.url());
+    let b = FakeWorker::register(&coord.url());
+
+    let la = a.lease().expect("a leases");
+    assert_eq!(la.attempt, 1);
+    assert!(a.heartbeat(la.task_id, 1).status == 200);
+    // A goes silent; its lease expires and the reaper gives the task back.
+    std::thread::sleep(Duration::from_millis(1_200));
+    let lb = b.lease().expect("b leases");
+    assert_eq!(
+        (lb.task_id, lb.attempt),
+        (la.task_id, 2),
+        "the expired task is leased again, attempt 2"
+    );
+
+    // A's late upload and heartbeat name a superseded attempt.
+    let r = a.upload(la.task_id, 1, FakeWorker::frame(&la, 1));
+    assert_eq!(r.status, 409);
+    assert_eq!(r.api_error().code, "stale_attempt");
+    assert_eq!(a.heartbeat(la.task_id, 1).status, 409);
+    // A cannot upload B's attempt either (not its lease).
+    let r = a.upload(lb.task_id, 2, FakeWorker::frame(&lb, 2));
+    assert_eq!(r.status, 409, "{}", String::from_utf8_lossy(&r.body));
+
+    // B's upload is accepted; repeating it is a no-op.
+    let r = b.upload(lb.task_id, 2, FakeWorker::frame(&lb, 2));
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    assert_eq!(r.json()["duplicate"], false);
+    let r = b.upload(lb.task_id, 2, FakeWorker::frame(&lb, 2));
+    assert_eq!(r.status, 200);
+    assert_eq!(r.json()["duplicate"], true);
+    // A frame whose header names another attempt than the query is refused.
+    let r = b.upload(lb.task_id, 2, FakeWorker::frame(&lb, 3));
+    assert_eq!(r.status, 400);
+    let n = coord
+        .block_on(coord.state.store.result_count(job))
+        .expect("count");
+    assert_eq!(n, 1, "exactly one result stored");
+}
+
+#[test]
+fn bad_input_is_4xx_json_naming_the_problem() {
+    let db = TestDb::new(Backend::Sqlite);
+    let mut cfg = db.config();
+    cfg.max_json_body = 64 << 10;
+    let coord = Coordinator::start(cfg);
+    let url = coord.url();
+    let client = Client::new(&url);
+
+    // A valid job first: it must survive everything below.
+    let good = client.submit(&small_spec(2));
+
+    let check = |r: e2e::Resp, status: u16, code: &str, needle: &str| {
+        assert_eq!(
+            r.status,
+            status,
+            "expected {status} {code}: {}",
+            String::from_utf8_lossy(&r.body)
+        );
+        let e = r.api_error();
+        assert_eq!(e.code, code, "{e:?}");
+        assert!(
+            e.message.contains(needle) || e.field.as_deref().is_some_and(|f| f.contains(needle)),
+            "error does not name `{needle}`: {e:?}"
+        );
+        e
+    };
+
+    check(
+        client.submit_raw(b"{\"scene\": "),
+        400,
+        "invalid_json",
+        "EOF",
+    );
+    check(
+        client.submit_raw(b"not json"),
+        400,
+        "invalid_json",
+        "expected",
+    );
+    let mut s = small_spec(2);
+    s["estimator"] = serde_json::json!({"kind": "magic"});
+    check(
+        client.submit_raw(&serde_json::to_vec(&s).unwrap()),
+        422,
+        "invalid_spec",
+        "magic",
+    );
+    s["estimator"] = serde_json::json!({"kind": "cms"});
+    let e = check(
+        client.submit_raw(&serde_json::to_vec(&s).unwrap()),
+        422,
+        "unsupported",
+        "cms",
+    );
+    assert_eq!(e.field.as_deref(), Some("estimator.kind"));
+    s["estimator"] = serde_json::json!({"kind": "path", "mis": "power", "bogus": 1});
+    let e = check(
+        client.submit_raw(&serde_json::to_vec(&s).unwrap()),
+        422,
+        "invalid_spec",
+        "bogus",
+    );
+    assert_eq!(e.field.as_deref(), Some("bogus"));
+    let mut s = small_spec(2);
+    s["spp"] = serde_json::json!(1 << 20);
+    check(
+        client.submit_raw(&serde_json::to_vec(&s).unwrap()),
+        422,
+        "invalid_spec",
+        "spp",
+    );
+    let mut s = small_spec(2);
+    s["resolution"] = serde_json::json!([100_000, 100_000]);
+    check(
+        client.submit_raw(&serde_json::to_vec(&s).unwrap()),
+        422,
+        "invalid_spec",
+        "resolution",
+    );
+    // Invalid scene: a shape naming a material that does not exist.
+    let mut s = small_spec(2);
+    s["scene"]["inline"]["shapes"][0]["material"] = serde_json::json!("no-such-material");
+    check(
+        client.submit_raw(&serde_json::to_vec(&s).unwrap()),
+        422,
+        "invalid_scene",
+        "no-such-material",
+    );
+    // A scene naming an asset that was never uploaded.
+    let mut s = small_spec(2);
+    s["scene"] = serde_json::json!({"inline": scene_json("envmap/scene.json")});
+    check(
+        client.submit_raw(&serde_json::to_vec(&s).unwrap()),
+        422,
+        "missing_asset",
+        "museum",
+    );
+    // Oversized body.
+    let big = vec![b' '; 100 << 10];
+    check(client.submit_raw(&big), 413, "body_too_large", "limit");
+    // Asset whose body does not hash to its address.
+    let r = client.request(
+        "PUT",
+        &format!("/v1/assets/{}", "0".repeat(64)),
+        Some(b"hello".to_vec()),
+    );
+    check(r, 422, "hash_mismatch", "address");
+    // Wrong and missing tokens.
+    check(
+        Client::with_token(&url, Some("wrong")).request("GET", "/v1/jobs", None),
+        401,
+        "unauthorized",
+        "token",
+    );
+    check(
+        Client::with_token(&url, None).request("GET", "/v1/jobs", None),
+        401,
+        "unauthorized",
+        "token",
+    );
+    let r = Client::with_token(&url, Some("wrong")).request(
+        "POST",
+        "/v1/workers/register",
+        Some(b"{}".to_vec()),
+    );
+    check(r, 401, "unauthorized", "token");
+    // A client token is not a worker token.
+    check(
+        client.request("POST", "/v1/workers/lease", None),
+        401,
+        "unauthorized",
+        "token",
+    );
+    // Unknown job, unknown route, output of an unfinished job.
+    check(
+        client.request("GET", "/v1/jobs/999999", None),
+        404,
+        "not_found",
+        "999999",
+    );
+    check(
+        client.request("GET", "/v1/nope", None),
+        404,
+        "not_found",
+        "route",
+    );
+    check(
+        client.request("GET", &format!("/v1/jobs/{good}/image.exr"), None),
+        409,
+        "not_finished",
+        "running",
+    );
+
+    // Worker-side: truncated and non-finite frames.
+    let fw = FakeWorker::register(&url);
+    let l = fw.lease().expect("lease");
+    let full = FakeWorker::frame(&l, l.attempt);
+    check(
+        fw.upload(l.task_id, l.attempt, full[..full.len() - 3].to_vec()),
+        400,
+        "invalid_frame",
+        "truncated",
+    );
+    let mut bad = TileResult {
+        header: TileHeader {
+            job_id: l.job_id,
+            task_id: l.task_id,
+            attempt: l.attempt,
+            rect: l.rect,
+            sample_start: l.sample_start,
+            sample_end: l.sample_end,
+        },
+        pixels: vec![PixelRecord::default(); l.rect.pixel_count()],
+        cells: vec![],
+    };
+    bad.pixels[5].sum[1] = f64::NAN;
+    check(
+        fw.upload(l.task_id, l.attempt, bad.encode()),
+        400,
+        "invalid_frame",
+        "non-finite",
+    );
+    check(
+        fw.upload(l.task_id, l.attempt, b"garbage".to_vec()),
+        400,
+        "invalid_frame",
+        "frame",
+    );
+    let r = fw.c.request(
+        "PUT",
+        &format!("/v1/tasks/{}/result", l.task_id),
+        Some(full.clone()),
+    );
+    check(r, 400, "invalid_query", "attempt");
+    // Nothing bad was stored; the real upload still goes through.
+    assert_eq!(fw.upload(l.task_id, l.attempt, full).status, 200);
+
+    // Nothing accepted was lost: the good job completes with real workers.
+    let w = Worker::start(&url, "w");
+    let st = client.wait(good, Duration::from_secs(60));
+    assert_eq!(st.state, JobState::Done);
+    w.stop();
+    let jobs = client.request("GET", "/v1/jobs", None).json();
+    assert_eq!(
+        jobs.as_array().map(Vec::len),
+        Some(1),
+        "only the valid job was created"
+    );
+}
+
+fn restart_mid_job(backend: Backend) {
+    let db = TestDb::new(backend);
+    let mut cfg = db.config();
+    cfg.lease_ms = 3_000;
+    cfg.heartbeat_ms = 500;
+    let mut coord = Coordinator::start(cfg);
+    let url = coord.url();
+    let client = Client::new(&url);
+    let scene = scene_json("cornell-box/scene.json");
+    let spec = serde_json::json!({
+        "scene": { "inline": scene }, "resolution": [48, 48], "spp": 128, "tile_size": 8, "seed": 5,
+    });
+    let id = client.submit(&spec);
+    let w = Worker::start(&url, "w");
+    // Kill the coordinator once some, but not all, tiles are done.
+    loop {
+        let s = client.status(id);
+        assert_eq!(
+            s.state,
+            JobState::Running,
+            "job finished before the kill; make it heavier"
+        );
+        if s.tasks_done >= 2 {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    coord.restart();
+    let client = Client::new(&coord.url());
+    let status = client.wait(id, Duration::from_secs(180));
+    assert_eq!(status.state, JobState::Done, "{status:?}");
+    w.stop();
+    // Nothing lost, nothing finished stored twice.
+    let stored = coord
+        .block_on(coord.state.store.result_count(id))
+        .expect("count");
+    assert_eq!(stored as u64, status.tasks_total);
+    let stats: serde_json::Value =
+        serde_json::from_slice(&client.download(id, "stats.json")).expect("stats");
+    // At most the lease answered while the coordinator died is taken again.
+    assert!(
+        stats["attempts"].as_u64().unwrap() <= status.tasks_total + 1,
+        "{stats}"
+    );
+    let farm = client.download(id, "image.exr");
+    assert!(
+        farm == local_exr(&scene, &[], &status.job),
+        "image differs after the restart"
+    );
+}
+
+#[test]
+fn coordinator_killed_and_restarted_mid_job_completes_sqlite() {
+    restart_mid_job(Backend::Sqlite);
+}
+
+#[test]
+fn coordinator_killed_and_restarted_mid_job_completes_postgres() {
+    restart_mid_job(Backend::Postgres);
+}
