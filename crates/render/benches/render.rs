@@ -9,6 +9,17 @@ use std::path::PathBuf;
 
 use render::{RenderOptions, RenderScene, RenderSettings, render_image};
 
+/// CPU seconds (user + system) this process has used so far, from `/proc/self/stat` (Linux;
+/// `None` elsewhere). Reported beside wall time because the machine may be shared.
+fn cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // Fields after the parenthesised command name; utime and stime are fields 14 and 15.
+    let rest = &stat[stat.rfind(')')? + 2..];
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks: f64 = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
+    Some(ticks / 100.0) // USER_HZ is 100 on Linux
+}
+
 fn main() {
     let root = PathBuf::from(
         std::env::var("SCENES_MITSUBA").unwrap_or_else(|_| "/work/shared/scenes-mitsuba".into()),
@@ -41,6 +52,7 @@ fn main() {
             ..RenderSettings::from_scene(&s)
         };
         let rs = RenderScene::new(&s, &st).expect("prepare scene");
+        let cpu0 = cpu_seconds();
         let (_, stats) = render_image(
             &rs,
             &st,
@@ -51,12 +63,15 @@ fn main() {
             &|_, _| {},
         )
         .expect("render");
+        let cpu = cpu_seconds().zip(cpu0).map_or(f64::NAN, |(b, a)| b - a);
         println!(
-            "{name}: 256x256 @ {spp} spp, depth 5, {threads} threads: {:.3} s, {:.3} Msamples/s, {:.3} Mrays/s ({:.3} Mrays/s/thread)",
+            "{name}: 256x256 @ {spp} spp, depth 5, {threads} threads: wall {:.3} s, {:.3} Msamples/s, \
+             {:.3} Mrays/s; CPU {cpu:.3} s, {:.3} Msamples/CPU-s, {:.3} Mrays/CPU-s",
             stats.seconds,
             stats.samples as f64 / stats.seconds / 1e6,
             stats.rays as f64 / stats.seconds / 1e6,
-            stats.rays as f64 / stats.seconds / 1e6 / threads as f64,
+            stats.samples as f64 / cpu / 1e6,
+            stats.rays as f64 / cpu / 1e6,
         );
     }
 }

@@ -25,9 +25,10 @@
 //!
 //! Pdfs are solid-angle densities at the shading point.
 //!
-//! Sampler dimensions: 0–1 pixel position; vertex `k` uses the 7 dimensions from
-//! `2 + 7k`: light selection (1), light position (2), BSDF lobe (1), BSDF direction (2),
-//! roulette (1) — fixed whether a technique runs or not.
+//! Sampler dimensions (aligned to the sampler's 4-dimension sets): 0–1 pixel position (2–3
+//! unused); vertex `k` uses the 8 dimensions from `4 + 8k`: light selection (1), light
+//! position (2), BSDF lobe (1), BSDF direction (2), roulette (1), one unused — fixed whether a
+//! technique runs or not.
 
 use glam::{Vec2, Vec3};
 
@@ -37,10 +38,10 @@ use super::{
 use crate::math::{Frame, Ray};
 use crate::sampler::Sampler;
 
-/// Sampler dimensions used by the camera (pixel position).
-pub const CAMERA_DIMS: u32 = 2;
-/// Sampler dimensions per path vertex.
-pub const DIMS_PER_VERTEX: u32 = 7;
+/// Sampler dimensions reserved for the camera (pixel position + 2 spare).
+pub const CAMERA_DIMS: u32 = 4;
+/// Sampler dimensions per path vertex (7 used + 1 spare, two 4-dimension sets).
+pub const DIMS_PER_VERTEX: u32 = 8;
 /// Most emitters a camera ray passes through with `hide_emitters` before giving up.
 const MAX_HIDDEN_EMITTERS: u32 = 64;
 
