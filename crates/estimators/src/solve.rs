@@ -1,5 +1,24 @@
 //! Solving a cell's CV system and applying the coefficients [Hua eq. 14, 21, 32–33].
 //!
+//! # The `cms` estimator (and `optimal_mis`, which uses pixels as cells)
+//! Training samples are accumulated per spatial cell ([`crate::cell`]), the coordinator
+//! merges and solves every cell with [`solve`], and the render pass applies the
+//! coefficients. Parameters that reach this crate:
+//!
+//! | name | type | default | meaning |
+//! |---|---|---|---|
+//! | `color` | `"rgb"` \| `"mono"` | `"rgb"` | per-channel or shared coefficients [Hua §4.3] |
+//! | `relative` | bool | true | weight samples by `1/(surrogate + 0.01)²` [Hua eq. 25] |
+//! | `ridge` | f64 | `1e-6` | [`SolvePolicy::ridge`] |
+//! | `min_samples` | u64 | 16 | [`SolvePolicy::min_samples`] |
+//! | `min_effective_samples` | f64 | 4 | [`SolvePolicy::min_effective_samples`] |
+//! | `min_partition_samples` | u64 | 1 | [`SolvePolicy::min_partition_samples`] |
+//! | `max_condition` | f64 | `1e12` | [`SolvePolicy::max_condition`] |
+//!
+//! ```json
+//! { "kind": "cms", "color": "rgb", "relative": true, "train_spp": 16, "ridge": 1e-6 }
+//! ```
+//!
 //! # What is solved
 //! `A α = b` with the sums of a [`CellAccumulator`] (one right-hand side per channel).
 //! The partition block of `A` is diagonal because per-light pdfs never overlap
@@ -35,7 +54,9 @@
 
 use nalgebra::{DMatrix, DVector};
 
-use crate::cell::{CHANNELS, CellAccumulator, ColorMode, ComponentLayout, CvSample};
+use crate::cell::{
+    CHANNELS, CellAccumulator, CellError, ColorMode, ComponentLayout, CvSample, Reader,
+};
 
 /// How a cell system is regularised and when it falls back (see the module table).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -579,4 +600,136 @@ pub fn solve_dense(acc: &CellAccumulator, policy: &SolvePolicy) -> CellCoefficie
     }
     out.finish();
     out
+}
+
+// ---------------------------------------------------------------------------------------
+// Binary encoding of coefficients (the table the coordinator broadcasts).
+
+/// Magic bytes of encoded [`CellCoefficients`].
+pub const COEFFICIENTS_MAGIC: [u8; 4] = *b"CVCO";
+/// Encoding version of [`CellCoefficients`].
+pub const COEFFICIENTS_VERSION: u16 = 1;
+
+const FALLBACK_CODES: [FallbackReason; 7] = [
+    FallbackReason::Empty,
+    FallbackReason::TooFewSamples,
+    FallbackReason::TooFewEffectiveSamples,
+    FallbackReason::NoActiveComponents,
+    FallbackReason::NotPositiveDefinite,
+    FallbackReason::IllConditioned,
+    FallbackReason::NonFinite,
+];
+
+impl CellCoefficients {
+    /// Encodes (little endian): magic `CVCO`, `u16` version, `u8` colour (0 RGB, 1 mono),
+    /// `u8` status (0 solved, 1 + index of the [`FallbackReason`] in declaration order),
+    /// `u32` P, `u32` K, `f64` condition, `u32` active partitions, `u32` active overlapping,
+    /// `f64` effective samples, `K·C` `f64` overlapping `α`, `u32` entry count, then per
+    /// fitted partition `u32` index and `C` `f64`.
+    pub fn encode(&self) -> Vec<u8> {
+        let c = self.color.channels();
+        let mut out = Vec::with_capacity(
+            46 + 8 * self.overlapping_alpha.len() + self.partition_ids.len() * (4 + 8 * c),
+        );
+        out.extend_from_slice(&COEFFICIENTS_MAGIC);
+        out.extend_from_slice(&COEFFICIENTS_VERSION.to_le_bytes());
+        out.push(match self.color {
+            ColorMode::Rgb => 0,
+            ColorMode::Mono => 1,
+        });
+        out.push(match self.diagnostics.status {
+            SolveStatus::Solved => 0,
+            SolveStatus::Fallback(r) => {
+                1 + FALLBACK_CODES.iter().position(|&x| x == r).unwrap_or(0) as u8
+            }
+        });
+        out.extend_from_slice(&self.layout.partitions.to_le_bytes());
+        out.extend_from_slice(&self.layout.overlapping.to_le_bytes());
+        out.extend_from_slice(&self.diagnostics.condition.to_le_bytes());
+        out.extend_from_slice(&(self.diagnostics.active_partitions as u32).to_le_bytes());
+        out.extend_from_slice(&(self.diagnostics.active_overlapping as u32).to_le_bytes());
+        out.extend_from_slice(&self.diagnostics.effective_samples.to_le_bytes());
+        for a in &self.overlapping_alpha {
+            out.extend_from_slice(&a.to_le_bytes());
+        }
+        out.extend_from_slice(&(self.partition_ids.len() as u32).to_le_bytes());
+        for (s, id) in self.partition_ids.iter().enumerate() {
+            out.extend_from_slice(&id.to_le_bytes());
+            for a in &self.partition_alpha[s * c..(s + 1) * c] {
+                out.extend_from_slice(&a.to_le_bytes());
+            }
+        }
+        out
+    }
+
+    /// Decodes and validates (sizes, sorted in-range indices, finite `α`); never panics.
+    pub fn decode(bytes: &[u8]) -> Result<Self, CellError> {
+        let mut r = Reader::new(bytes);
+        if r.take(4)? != COEFFICIENTS_MAGIC {
+            return Err(CellError::BadMagic);
+        }
+        let version = r.u16()?;
+        if version != COEFFICIENTS_VERSION {
+            return Err(CellError::UnsupportedVersion(version));
+        }
+        let color = match r.u8()? {
+            0 => ColorMode::Rgb,
+            1 => ColorMode::Mono,
+            _ => return Err(CellError::BadHeader),
+        };
+        let status = match r.u8()? {
+            0 => SolveStatus::Solved,
+            k => SolveStatus::Fallback(
+                *FALLBACK_CODES
+                    .get(usize::from(k) - 1)
+                    .ok_or(CellError::BadHeader)?,
+            ),
+        };
+        let layout = ComponentLayout::new(r.u32()?, r.u32()?)?;
+        let condition = {
+            let at = r.pos();
+            let v = f64::from_le_bytes(
+                r.take(8)?
+                    .try_into()
+                    .map_err(|_| CellError::InvalidValue(at))?,
+            );
+            if v.is_nan() || v < 0.0 { f64::NAN } else { v }
+        };
+        let active_partitions = r.u32()? as usize;
+        let active_overlapping = r.u32()? as usize;
+        let effective_samples = r.nonneg_f64()?;
+        let diagnostics = SolveDiagnostics {
+            status,
+            condition,
+            active_partitions,
+            active_overlapping,
+            effective_samples,
+        };
+        let mut out = CellCoefficients::zero(layout, color, diagnostics);
+        for a in out.overlapping_alpha.iter_mut() {
+            *a = r.finite_f64()?;
+        }
+        let c = color.channels();
+        let n = u64::from(r.u32()?);
+        if n > u64::from(layout.partitions) || n * (4 + 8 * c as u64) > r.remaining() as u64 {
+            return Err(CellError::BadEntryCount(n));
+        }
+        for _ in 0..n {
+            let at = r.pos();
+            let id = r.u32()?;
+            if id >= layout.partitions || out.partition_ids.last().is_some_and(|&p| id <= p) {
+                return Err(CellError::BadPartition(at));
+            }
+            out.partition_ids.push(id);
+            for _ in 0..c {
+                let a = r.finite_f64()?;
+                out.partition_alpha.push(a);
+            }
+        }
+        if !r.at_end() {
+            return Err(CellError::Trailing(r.remaining()));
+        }
+        out.finish();
+        Ok(out)
+    }
 }

@@ -225,3 +225,23 @@ fn every_truncation_is_a_typed_error() {
     assert_eq!(acc.merge(&other), Err(CellError::LayoutMismatch));
     assert_eq!(acc.encode(), before);
 }
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(64))]
+
+    #[test]
+    fn coefficients_round_trip_and_decode_never_panics(a in prop::collection::vec(smp(), 0..100), c in color(), junk in prop::collection::vec(any::<u8>(), 0..200)) {
+        let coeffs = solve(&build(&a, c), &SolvePolicy::default());
+        let bytes = coeffs.encode();
+        let back = estimators::solve::CellCoefficients::decode(&bytes).unwrap();
+        prop_assert_eq!(back.encode(), bytes.clone());
+        prop_assert_eq!(back.alpha_sum(), coeffs.alpha_sum());
+        for n in 0..bytes.len() {
+            prop_assert!(estimators::solve::CellCoefficients::decode(&bytes[..n]).is_err());
+        }
+        let _ = estimators::solve::CellCoefficients::decode(&junk);
+        let mut with_magic = b"CVCO\x01\x00".to_vec();
+        with_magic.extend_from_slice(&junk);
+        let _ = estimators::solve::CellCoefficients::decode(&with_magic);
+    }
+}
