@@ -205,6 +205,48 @@ fn main() {
         lights.env_radiance(dirs[k % dirs.len()])
     });
 
+    // Sampling quality: per-sample relative standard deviation of the luminance irradiance
+    // estimate L·max(0, n·ω)/pdf on the museum map (lower is better). Mitsuba 3.9.1's
+    // bilinear warp on the same map gives 0.927, 2.404, 2.130, 2.031, 1.274 for these normals
+    // (1M samples, `e.sample_direction`, same estimator).
+    let lights = Lights::new(
+        &scene(
+            vec![],
+            vec![],
+            Some(Environment::Envmap {
+                image: env_image.clone(),
+                to_world: Mat3::IDENTITY,
+            }),
+        ),
+        LightSelection::Uniform,
+    );
+    let normals = [
+        Vec3::Y,
+        -Vec3::Y,
+        Vec3::X,
+        Vec3::Z,
+        Vec3::new(1.0, 1.0, -1.0).normalize(),
+    ];
+    for nrm in normals {
+        let (mut s1, mut s2) = (0.0f64, 0.0f64);
+        for &(_, _, u) in &inputs {
+            if let Some(s) = lights.sample_light(0, Vec3::ZERO, u) {
+                let f = f64::from(
+                    render::light::luminance(s.radiance) * nrm.dot(s.wi).max(0.0) / s.pdf,
+                );
+                s1 += f;
+                s2 += f * f;
+            }
+        }
+        let m = s1 / n as f64;
+        let sd = (s2 / n as f64 - m * m).max(0.0).sqrt();
+        println!(
+            "{:<48} {:8.4} (mean {m:.5})",
+            format!("museum irradiance n = {nrm}: rel. std/sample"),
+            sd / m
+        );
+    }
+
     // One mesh light with 2·300² = 180k triangles of very different areas.
     let mesh = big_mesh(300);
     let lights = Lights::new(&scene(vec![mesh], vec![], None), LightSelection::Uniform);
