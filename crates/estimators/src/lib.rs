@@ -18,6 +18,8 @@
 //!   the re-rendering composite [Rou §3.2, §4].
 //! - [`reconstruct`]: image-space reconstructions of gradient-domain renderings: uniform and
 //!   weighted iterated CV, screened Poisson L2 and weighted L2 [Rou §5].
+//! - [`filter`]: NL-means prefiltering of variances [Rou §4.1] and the surrogate denoiser
+//!   for relative-variance training [Hua §4.2.1].
 //! - [`metrics`]: relMSE, MSE, efficiency and speedup (DESIGN §6).
 //! - [`perceptual`]: Fan's perceptual error with the tvi function [Fan eq. 12].
 
@@ -27,6 +29,7 @@
 
 pub mod cell;
 pub mod composite;
+pub mod filter;
 pub mod metrics;
 pub mod mis;
 pub mod ocv;
