@@ -410,7 +410,10 @@ fn black_and_malformed_maps_emit_nothing() {
 
 /// The repository's copy of Mitsuba's `museum.exr` (512×256 half-float lat-long map).
 fn museum() -> RgbImage {
-    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scenes/envmap/museum.exr");
+    let path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../scenes/envmap/museum.exr"
+    );
     let exr = imageio::read_exr(path).expect("scenes/envmap/museum.exr");
     let layer = exr.main_layer().expect("an RGB layer");
     RgbImage {
@@ -450,7 +453,10 @@ fn museum_env_map_matches_mitsuba_integrals() {
         ([0.0, -1.0, 0.0], [0.574_770_0, 0.303_241_0, 0.173_340_7]),
         ([1.0, 0.0, 0.0], [0.859_874_9, 0.508_644_9, 0.357_523_3]),
         ([0.0, 0.0, 1.0], [0.872_321_6, 0.527_243_5, 0.375_766_4]),
-        ([0.577_350_3, 0.577_350_3, -0.577_350_3], [1.607_616_7, 1.386_777_9, 1.313_162_4]),
+        (
+            [0.577_350_3, 0.577_350_3, -0.577_350_3],
+            [1.607_616_7, 1.386_777_9, 1.313_162_4],
+        ),
     ];
     let env = lights.env_light().unwrap();
     for (k, (n, expected)) in cases.into_iter().enumerate() {
@@ -468,7 +474,9 @@ fn museum_env_map_matches_mitsuba_integrals() {
             }
         }
         let mean = sum / samples as f64;
-        let se = ((sum2 / samples as f64 - mean * mean) / samples as f64).max(glam::DVec3::ZERO).powf(0.5);
+        let se = ((sum2 / samples as f64 - mean * mean) / samples as f64)
+            .max(glam::DVec3::ZERO)
+            .powf(0.5);
         for c in 0..3 {
             let tol = 5.0 * se[c] + 1e-4 * expected[c];
             assert!(

@@ -6,9 +6,9 @@
 //!
 //! | type | field | type | default | meaning |
 //! |---|---|---|---|---|
-//! | `envmap` | `filename` | asset | — | lat-long image (EXR/PNG), linear RGB radiance |
+//! | `envmap` | `filename` | asset | — | lat-long EXR image, linear RGB radiance |
 //! | | `scale` | float | 1 | radiance multiplier |
-//! | | `transform` | transform | identity | map-to-world rotation |
+//! | | `transform` | transform | identity | map-to-world rotation (rotations only) |
 //! | `constant` | `radiance` | RGB | — | radiance from every direction |
 //!
 //! ```json
