@@ -39,7 +39,7 @@ pub struct CompareArgs {
     /// The reference image (EXR, same size).
     pub reference: PathBuf,
     /// Print the result as one JSON object on stdout.
-    #[arg(long, env = "CVFARM_JSON")]
+    #[arg(long, env = "CVFARM_JSON", value_parser = clap::builder::BoolishValueParser::new())]
     pub json: bool,
     /// EXR layer to compare in both files (default: `beauty`, else the first layer).
     #[arg(long, env = "CVFARM_LAYER")]

@@ -87,7 +87,7 @@ pub struct RenderArgs {
     #[arg(long, env = "CVFARM_LIGHT_SELECTION", value_enum, default_value_t = LightSelectionArg::Uniform)]
     pub light_selection: LightSelectionArg,
     /// Hide directly visible emitters [default: the scene's].
-    #[arg(long, env = "CVFARM_HIDE_EMITTERS")]
+    #[arg(long, env = "CVFARM_HIDE_EMITTERS", value_parser = clap::builder::BoolishValueParser::new())]
     pub hide_emitters: bool,
     /// Tile edge in pixels (affects speed only, never the image).
     #[arg(long, env = "CVFARM_TILE_SIZE", default_value_t = 32,

@@ -179,6 +179,20 @@ fn environment_variables_set_flags() {
     ok(&o);
     let st: serde_json::Value = serde_json::from_slice(&std::fs::read(&stats).unwrap()).unwrap();
     assert_eq!(st["spp"].as_u64(), Some(1));
+    // boolean flags accept the usual spellings (1/0, yes/no, true/false)
+    for (value, is_json) in [("1", true), ("yes", true), ("0", false), ("false", false)] {
+        let o = cvfarm()
+            .args(["compare", s(&exr), s(&exr)])
+            .env("CVFARM_JSON", value)
+            .output()
+            .unwrap();
+        let text = ok(&o);
+        assert_eq!(
+            serde_json::from_str::<serde_json::Value>(&text).is_ok(),
+            is_json,
+            "CVFARM_JSON={value}: {text}"
+        );
+    }
 }
 
 #[test]

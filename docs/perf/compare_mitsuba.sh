@@ -1,0 +1,111 @@
+#!/bin/sh
+# Renderer speed vs Mitsuba 3 at equal spp on the same machine (DESIGN §8).
+#
+# Scenes: scenes/cornell-box and scenes/many-lights (native JSON for cvfarm; the identical Mitsuba
+# 3 XML written by `scenes/make_scenes.py --mitsuba-xml` for Mitsuba), 256x256, max_depth 5,
+# rr_depth 6 (no Russian roulette in either renderer), 2 threads, path integrator, box filter.
+# Mitsuba variants scalar_rgb and llvm_ad_rgb; Mitsuba renders twice in the same process and the
+# second render is timed (so llvm's JIT compilation is not counted; the first, cold time is listed too).
+# cvfarm reports rays/s too (camera + shadow + continuation rays); Mitsuba does not count rays.
+#
+# Usage (repo root): sh docs/perf/compare_mitsuba.sh [SPP]      (default SPP 64)
+# Writes docs/perf/mitsuba.md and docs/perf/mitsuba.json.
+set -e
+SPP=${1:-64}
+THREADS=2
+RES=256
+ROOT=$(pwd)
+TMP=$(mktemp -d)
+OUT_MD=$ROOT/docs/perf/mitsuba.md
+OUT_JSON=$ROOT/docs/perf/mitsuba.json
+if [ -z "$DRJIT_LIBLLVM_PATH" ]; then
+  DRJIT_LIBLLVM_PATH=$(ldconfig -p | sed -n 's/.*libLLVM\.so\.19[^ ]* .*=> //p' | head -n1)
+  export DRJIT_LIBLLVM_PATH
+fi
+
+cargo build --release -p cli >&2
+CVFARM=$ROOT/target/release/cvfarm
+python3 scenes/make_scenes.py --only cornell-box --only many-lights --out "$TMP/native" \
+  --mitsuba-xml "$TMP/xml" 2>/dev/null
+
+for s in cornell-box many-lights; do
+  "$CVFARM" render "scenes/$s/scene.json" --res ${RES}x${RES} --spp "$SPP" --max-depth 5 --rr-depth 6 \
+    --threads $THREADS --seed 1 -o "$TMP/$s.cvfarm.exr" --stats "$TMP/$s.cvfarm.json" >&2
+  for v in scalar_rgb llvm_ad_rgb; do
+    python3 - "$TMP/xml/$s/scene.xml" "$v" "$SPP" "$THREADS" "$RES" "$TMP/$s.$v.exr" "$TMP/$s.$v.json" <<'PY'
+import json, sys, time
+scene_path, variant, spp, threads, res, exr, out = sys.argv[1:8]
+spp, threads, res = int(spp), int(threads), int(res)
+import os, re
+import mitsuba as mi
+import drjit as dr
+mi.set_variant(variant)
+dr.set_thread_count(threads)
+t0 = time.perf_counter()
+xml = open(scene_path).read()
+xml = re.sub(r'name="rr_depth" value="[0-9-]+"', 'name="rr_depth" value="6"', xml)
+xml = re.sub(r'name="max_depth" value="[0-9-]+"', 'name="max_depth" value="5"', xml)
+xml = re.sub(r'name="(width|height)" value="[0-9]+"', lambda m: f'name="{m.group(1)}" value="{res}"', xml)
+(mi.file_resolver() if hasattr(mi, "file_resolver") else mi.Thread.thread().file_resolver()).prepend(os.path.dirname(os.path.abspath(scene_path)))
+scene = mi.load_string(xml)
+load_s = time.perf_counter() - t0
+t1 = time.perf_counter()
+img = mi.render(scene, spp=spp, seed=99)
+dr.eval(img); dr.sync_thread()
+cold_s = time.perf_counter() - t1
+t2 = time.perf_counter()
+img = mi.render(scene, spp=spp, seed=1)
+dr.eval(img); dr.sync_thread()
+secs = time.perf_counter() - t2
+mi.Bitmap(img).write(exr)
+json.dump({"variant": variant, "seconds": secs, "cold_seconds": cold_s, "load_seconds": load_s,
+           "samples": res * res * spp, "samples_per_s": res * res * spp / secs}, open(out, "w"))
+PY
+  done
+done
+
+python3 - "$TMP" "$SPP" "$THREADS" "$RES" "$OUT_MD" "$OUT_JSON" <<'PY'
+import json, os, platform, subprocess, sys, datetime
+tmp, spp, threads, res, out_md, out_json = sys.argv[1:7]
+rows, doc = [], {"spp": int(spp), "threads": int(threads), "resolution": [int(res)] * 2, "max_depth": 5,
+                 "rr_depth": 6, "entries": []}
+cpu = "unknown"
+try:
+    cpu = [l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo") if l.startswith("model name")][0]
+except Exception:
+    pass
+import mitsuba
+for s in ["cornell-box", "many-lights"]:
+    c = json.load(open(os.path.join(tmp, f"{s}.cvfarm.json")))
+    e = {"scene": s, "renderer": "cvfarm", "seconds": c["seconds"], "samples_per_s": c["samples_per_s"],
+         "rays_per_s": c["rays_per_s"], "rays_per_sample": c["rays"] / max(c["samples"], 1)}
+    doc["entries"].append(e)
+    for v in ["scalar_rgb", "llvm_ad_rgb"]:
+        m = json.load(open(os.path.join(tmp, f"{s}.{v}.json")))
+        doc["entries"].append({"scene": s, "renderer": f"mitsuba {mitsuba.__version__} {v}", "seconds": m["seconds"],
+                               "samples_per_s": m["samples_per_s"], "rays_per_s": None,
+                               "cold_seconds": m["cold_seconds"]})
+json.dump(doc, open(out_json, "w"), indent=1)
+lines = [
+    "# cvfarm vs Mitsuba 3: render speed at equal spp",
+    "",
+    "**PRELIMINARY**: measured while other builds and tests were running on the same 2 cores; rerun on",
+    "an idle machine with `sh docs/perf/compare_mitsuba.sh [SPP]` (from the repository root).",
+    "",
+    f"Date {datetime.datetime.utcnow():%Y-%m-%d %H:%M} UTC, CPU {cpu}, {threads} threads, {res}x{res}, {spp} spp,",
+    "max_depth 5, rr_depth 6 (no Russian roulette), path tracer with NEE + BSDF MIS (power heuristic),",
+    "box filter. Same scene in both renderers (native JSON / the XML written by `make_scenes.py --mitsuba-xml`).",
+    "Mitsuba renders twice in one process; the second render is timed (llvm JIT excluded; the cold first render is listed).",
+    "",
+    "| scene | renderer | seconds | samples/s | rays/s | rays/sample | cold run (s) |",
+    "|---|---|---|---|---|---|---|",
+]
+for e in doc["entries"]:
+    rays = f"{e['rays_per_s'] / 1e6:.2f} M" if e.get("rays_per_s") else "–"
+    rps = f"{e['rays_per_sample']:.2f}" if e.get("rays_per_sample") else "–"
+    warm = f"{e['cold_seconds']:.2f}" if e.get("cold_seconds") is not None else "–"
+    lines.append(f"| {e['scene']} | {e['renderer']} | {e['seconds']:.2f} | {e['samples_per_s'] / 1e6:.3f} M | {rays} | {rps} | {warm} |")
+open(out_md, "w").write("\n".join(lines) + "\n")
+print("\n".join(lines))
+PY
+rm -rf "$TMP"
