@@ -242,12 +242,13 @@ pub enum TextureDesc {
         /// Behaviour outside [0, 1].
         #[serde(default)]
         wrap: TextureWrap,
-        /// Transform applied to (u, v, 0) before lookup.
+        /// Transform applied to the point (u, v, 0) before lookup (Mitsuba's `to_uv`).
         #[serde(default, skip_serializing_if = "Vec::is_empty")]
         uv_transform: TransformDesc,
     },
-    /// Mitsuba's checkerboard on the transformed (u, v): `color0` where ⌊2u⌋ + ⌊2v⌋ is **odd**
-    /// (exactly one of frac(u), frac(v) exceeds ½), `color1` where it is even.
+    /// Mitsuba's checkerboard on the transformed (u, v): `color0` where ⌊2u⌋ + ⌊2v⌋ is
+    /// **even** (e.g. around uv = (0.25, 0.25)), `color1` where it is odd — checked against
+    /// Mitsuba 3.9.1.
     Checkerboard {
         /// First colour.
         #[serde(default = "default_checker0")]

@@ -2,8 +2,8 @@
 //!
 //! Contract: returns a [`RawMesh`] in which a vertex is a unique (position, uv, normal) index
 //! triple, as Mitsuba builds it; texture `v` is flipped (`1 − v`) as Mitsuba's `obj` does by
-//! default; polygons are triangulated as fans around their first vertex. Normals/uvs are kept
-//! only if *every* face vertex has one. Errors name the file and line. Statements other than
+//! default; polygons are triangulated as fans around their first vertex. Normals are kept only if
+//! *every* face vertex has one; uvs if any has one (the others get (0, 0), as in Mitsuba). Errors name the file and line. Statements other than
 //! `v`, `vt`, `vn`, `f` (groups, materials, smoothing, lines, points) are ignored.
 
 use std::collections::HashMap;
@@ -91,7 +91,7 @@ pub fn parse(file: &str, bytes: &[u8]) -> Result<RawMesh, SceneError> {
     let mut map: HashMap<(usize, Option<usize>, Option<usize>), u32> = HashMap::new();
     let mut keys: Vec<(usize, Option<usize>, Option<usize>)> = Vec::new();
     let mut indices: Vec<[u32; 3]> = Vec::new();
-    let mut all_uv = true;
+    let mut any_uv = false;
     let mut all_n = true;
 
     for (ln, raw) in text.lines().enumerate() {
@@ -121,7 +121,7 @@ pub fn parse(file: &str, bytes: &[u8]) -> Result<RawMesh, SceneError> {
                         Some("") | None => None,
                         Some(s) => Some(resolve(file, line, s, vn.len(), "normal")?),
                     };
-                    all_uv &= pt.is_some();
+                    any_uv |= pt.is_some();
                     all_n &= pn.is_some();
                     let key = (pv, pt, pn);
                     let id = *map.entry(key).or_insert_with(|| {
@@ -152,7 +152,12 @@ pub fn parse(file: &str, bytes: &[u8]) -> Result<RawMesh, SceneError> {
         });
     }
     let positions = keys.iter().map(|k| v[k.0]).collect();
-    let uvs = all_uv.then(|| keys.iter().map(|k| vt[k.1.unwrap_or(0)]).collect());
+    // As Mitsuba: uvs are kept if any face vertex has one; the others get (0, 0).
+    let uvs = any_uv.then(|| {
+        keys.iter()
+            .map(|k| k.1.map_or(Vec2::ZERO, |t| vt[t]))
+            .collect()
+    });
     let normals = all_n.then(|| keys.iter().map(|k| vn[k.2.unwrap_or(0)]).collect());
     Ok(RawMesh {
         positions,

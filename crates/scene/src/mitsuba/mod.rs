@@ -17,9 +17,8 @@
 //! | `<default>`, `<include>`, `$param` | | substitution in every attribute; caller parameters override defaults |
 //!
 //! Conventions kept from Mitsuba: a conductor without `eta`/`k` (material `none`) is a perfect
-//! mirror (eta 0, k 1); the default integrator depth is −1 (unbounded); `to_uv` uses the
-//! upper-left 3×3 of the 4×4 as a 2-D homogeneous transform, converted here to the native
-//! semantics (applied to (u, v, 0, 1)).
+//! mirror (eta 0, k 1); the default integrator depth is −1 (unbounded); `to_uv` is applied to
+//! the point (u, v, 0) as in Mitsuba 3.9 (so the native `uv_transform` takes it unchanged).
 
 pub mod xml;
 
@@ -746,33 +745,10 @@ impl<'n> Importer<'n> {
         Ok(t)
     }
 
-    /// Mitsuba's `to_uv` (upper-left 3×3 as a 2-D homogeneous map) → native ops on (u, v, 0, 1).
+    /// Mitsuba's `to_uv`: Mitsuba 3.9 applies the 4×4 to (u, v, 0, 1) (a `translate` moves the
+    /// pattern — checked against Mitsuba 3.9.1), which is the native semantics: passed through.
     fn uv_transform(&mut self, p: &mut Props<'n>) -> Result<TransformDesc, SceneError> {
-        let node = p.take("to_uv");
-        let Some(node) = node else {
-            return Ok(Vec::new());
-        };
-        if node.tag != "transform" {
-            return Err(node.error("`to_uv` must be a <transform>"));
-        }
-        let ops = parse_transform(node)?;
-        if ops.iter().all(|op| matches!(op, TransformOp::Scale(_))) {
-            return Ok(ops); // same map under both conventions
-        }
-        let m =
-            crate::transform::to_matrix(&ops, "to_uv").map_err(|e| node.error(e.to_string()))?;
-        // glam is column-major: m.col(c)[r] = M[r][c].
-        let e = |r: usize, c: usize| m.col(c)[r];
-        let mut out = [0.0f32; 16];
-        out[0] = e(0, 0);
-        out[1] = e(0, 1);
-        out[3] = e(0, 2);
-        out[4] = e(1, 0);
-        out[5] = e(1, 1);
-        out[7] = e(1, 2);
-        out[10] = 1.0;
-        out[15] = 1.0;
-        Ok(vec![TransformOp::Matrix(out)])
+        p.transform("to_uv")
     }
 
     fn bsdf(&mut self, n: &'n Node) -> Result<MaterialDesc, SceneError> {
@@ -1077,14 +1053,14 @@ mod tests {
                 ..
             }
         ));
-        // Mitsuba ignores the 4th column of a 4×4 to_uv: the translate has no effect.
+        // Mitsuba 3.9 applies a to_uv translate (checked with Mitsuba 3.9.1).
         let TextureDesc::Bitmap { uv_transform, .. } = &d.textures["_tex1"] else {
             panic!()
         };
         let m = crate::transform::to_matrix(uv_transform, "t").unwrap();
         assert_eq!(
             m.transform_point3(glam::Vec3::new(0.25, 0.5, 0.0)),
-            glam::Vec3::new(0.25, 0.5, 0.0)
+            glam::Vec3::new(0.75, 0.5, 0.0)
         );
     }
 }
