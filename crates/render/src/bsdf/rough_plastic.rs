@@ -327,3 +327,39 @@ pub fn sample(
         delta: false,
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn gauss_legendre_is_exact_for_polynomials() {
+        for n in [1usize, 2, 5, 32, 128] {
+            let (x, w) = gauss_legendre(n);
+            // Exact for degree ≤ 2n − 1: ∫_{-1}^{1} t^k dt = 2/(k+1) for even k, 0 for odd.
+            for k in 0..(2 * n).min(12) {
+                let v: f64 = x.iter().zip(&w).map(|(x, w)| w * x.powi(k as i32)).sum();
+                let exact = if k % 2 == 0 {
+                    2.0 / (k as f64 + 1.0)
+                } else {
+                    0.0
+                };
+                assert!((v - exact).abs() < 1e-12, "n={n} k={k}: {v} vs {exact}");
+            }
+        }
+    }
+
+    #[test]
+    fn smooth_limit_transmittance_is_one_minus_fresnel() {
+        // For a nearly smooth coating T(μ) → 1 − F(μ) and R(μ) → F(μ) (away from grazing).
+        let mf = Microfacet::new(Distribution::Ggx, 1e-3);
+        for mu in [0.3f32, 0.7, 1.0] {
+            let f = fresnel::dielectric(mu, 1.5);
+            assert!(
+                (transmittance_albedo(&mf, mu, 1.5) - (1.0 - f)).abs() < 1e-3,
+                "μ={mu}"
+            );
+            assert!((specular_albedo(&mf, mu, 1.5) - f).abs() < 1e-3, "μ={mu}");
+        }
+    }
+}
