@@ -534,3 +534,66 @@ fn non_finite_inputs_give_none_or_zero() {
         }
     }
 }
+
+#[test]
+fn ten_thousand_lights_with_extreme_magnitudes() {
+    // 10 000 small quads with radiance from 1e-30 to 1e30 (and a few black ones).
+    let meshes: Vec<scene::Mesh> = (0..10_000)
+        .map(|k| {
+            let mut m = quad_facing_down(1.0 + k as f32 * 1e-3, 0.01);
+            let e = if k % 1000 == 0 {
+                0.0
+            } else {
+                10f32.powf(-30.0 + 60.0 * (k as f32 / 9_999.0))
+            };
+            m.emitter = Some(Vec3::splat(e));
+            m
+        })
+        .collect();
+    let sc = scene(meshes, vec![], None);
+    for selection in [LightSelection::Uniform, LightSelection::Power] {
+        let lights = Lights::new(&sc, selection);
+        assert_eq!(lights.len(), 10_000);
+        let sum: f64 = (0..10_000).map(|l| lights.selection_pmf(l) as f64).sum();
+        assert!((sum - 1.0).abs() < 1e-4, "{selection:?}: Σ pmf = {sum}");
+        let mut rng = Pcg32::new(31, 0);
+        for _ in 0..10_000 {
+            let (l, pmf) = lights.select(rng.next_f32()).unwrap();
+            assert!(
+                pmf > 0.0 && pmf == lights.selection_pmf(l),
+                "{selection:?}: light {l} pmf {pmf}"
+            );
+            let u = Vec2::new(rng.next_f32(), rng.next_f32());
+            let s = lights.sample(Vec3::ZERO, rng.next_f32(), u).unwrap();
+            assert!(s.pdf.is_finite() && s.pdf > 0.0 && s.radiance.is_finite());
+        }
+        if selection == LightSelection::Power {
+            // The brightest lights dominate; black lights are never picked.
+            assert!(lights.selection_pmf(9_999) > 1e-3);
+            assert_eq!(lights.selection_pmf(1_000), 0.0, "black light");
+        }
+    }
+}
+
+#[test]
+fn grazing_shading_points_stay_finite() {
+    // Shading points in (and just above) the plane of a quad light: samples are either
+    // None or have a finite pdf, and pdf_area agrees with the sample.
+    let sc = scene(vec![quad_facing_down(1.0, 0.5)], vec![], None);
+    let lights = Lights::new(&sc, LightSelection::Uniform);
+    let mut rng = Pcg32::new(37, 0);
+    for p in [
+        Vec3::new(2.0, 0.0, 1.0),
+        Vec3::new(2.0, 0.0, 1.0 - 1e-6),
+        Vec3::new(0.5, 0.5, 1.0 - 1e-7),
+    ] {
+        for _ in 0..1000 {
+            let u = Vec2::new(rng.next_f32(), rng.next_f32());
+            if let Some(s) = lights.sample_light(0, p, u) {
+                assert!(s.pdf.is_finite() && s.pdf > 0.0, "p = {p}: pdf {}", s.pdf);
+                let q = lights.pdf_area(0, p, p + s.wi * s.dist, s.n);
+                assert!(q.is_finite(), "p = {p}: pdf_area {q}");
+            }
+        }
+    }
+}
