@@ -249,3 +249,55 @@ fn techniques_list_only_what_the_scene_calls_for() {
         vec!["emission", "nee", "bsdf_sampling", "env"]
     );
 }
+
+#[test]
+fn hide_emitters_lets_camera_rays_pass_through_area_lights() {
+    // A one-sided emitter facing the camera in front of a grey plane lit by a constant env.
+    let mut s = empty_scene(
+        look_at(Vec3::new(0.0, 0.0, -3.0), Vec3::ZERO, Vec3::Y),
+        10.0,
+        4,
+        4,
+    );
+    s.environment = constant_env(Vec3::ONE);
+    let grey = add_material(&mut s, diffuse(Vec3::splat(0.5), false));
+    // Plane z = 1 facing −z (towards the camera): u × v = X × (−Y)... use (Y, X): Y × X = −Z.
+    s.meshes.push(quad(
+        Vec3::new(0.0, 0.0, 1.0),
+        Vec3::Y * 5.0,
+        Vec3::X * 5.0,
+        grey,
+        None,
+    ));
+    // Emitter at z = 0, small, facing −z.
+    s.meshes.push(quad(
+        Vec3::ZERO,
+        Vec3::Y * 0.5,
+        Vec3::X * 0.5,
+        grey,
+        Some(Vec3::splat(7.0)),
+    ));
+    let shown = render(&s, 8, 1, 5);
+    // 7 emitted + at most 0.5 reflected by its own grey surface.
+    let centre = shown.pixel(2, 2).mean();
+    assert!(
+        centre[0] > 6.9 && centre[0] < 7.6,
+        "emitter visible without hide_emitters: {centre:?}"
+    );
+    let st = RenderSettings {
+        spp: 8,
+        max_depth: 5,
+        hide_emitters: true,
+        ..RenderSettings::from_scene(&s)
+    };
+    let rs = RenderScene::new(&s, &st).unwrap();
+    let hidden = render_image(&rs, &st, &RenderOptions::default(), &|_, _| {})
+        .unwrap()
+        .0;
+    let c = hidden.pixel(2, 2).mean();
+    // Behind the emitter: the plane, lit by the env (ρ·L·visible sky ≤ 0.5), not 7.
+    assert!(
+        c[0] > 0.05 && c[0] < 0.5,
+        "hidden emitter shows the plane behind it: {c:?}"
+    );
+}
