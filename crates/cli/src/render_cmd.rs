@@ -274,6 +274,13 @@ pub fn run(args: &RenderArgs) -> Result<ExitCode> {
     if args.output.as_os_str().is_empty() {
         bail!("--output must not be empty");
     }
+    // Create output directories first: a bad output path should fail before a long render.
+    for path in [Some(&args.output), args.png.as_ref(), args.stats.as_ref()]
+        .into_iter()
+        .flatten()
+    {
+        ensure_parent(path)?;
+    }
     let scene = load_scene(args)?;
     let st = settings(&scene, args)?;
     let options = RenderOptions {
@@ -317,11 +324,9 @@ pub fn run(args: &RenderArgs) -> Result<ExitCode> {
             data: l.data,
         })
         .collect();
-    ensure_parent(&args.output)?;
     imageio::write_exr(&args.output, width, height, &layers)
         .with_context(|| format!("writing {}", args.output.display()))?;
     if let Some(png) = &args.png {
-        ensure_parent(png)?;
         imageio::write_png_preview(png, width, height, &film.mean_image())
             .with_context(|| format!("writing {}", png.display()))?;
     }
@@ -350,7 +355,6 @@ pub fn run(args: &RenderArgs) -> Result<ExitCode> {
             "rejected_samples": film.rejected,
             "mean": mean,
         });
-        ensure_parent(path)?;
         std::fs::write(path, format!("{doc:#}\n"))
             .with_context(|| format!("writing {}", path.display()))?;
     }
