@@ -532,8 +532,16 @@ fn eval_pdf_agrees_with_eval_and_pdf() {
                     wi.z = -wi.z;
                 }
                 let (f, p) = b.eval_pdf(wo, wi);
-                assert!(rel_close(f, b.eval(wo, wi), 1e-4), "{name}: {f} vs {}", b.eval(wo, wi));
-                assert!((p - b.pdf(wo, wi)).abs() <= 1e-4 * p.max(1e-6), "{name}: {p} vs {}", b.pdf(wo, wi));
+                assert!(
+                    rel_close(f, b.eval(wo, wi), 1e-4),
+                    "{name}: {f} vs {}",
+                    b.eval(wo, wi)
+                );
+                assert!(
+                    (p - b.pdf(wo, wi)).abs() <= 1e-4 * p.max(1e-6),
+                    "{name}: {p} vs {}",
+                    b.pdf(wo, wi)
+                );
             }
         }
     }
