@@ -19,7 +19,7 @@ fn renders_cornell_box_to_exr_and_png_and_compares_with_itself() {
         dir.join("out/cbox.png"),
         dir.join("stats.json"),
     );
-    let out = ok(&run(&[
+    let o = run(&[
         "render",
         s(&scene("cornell-box")),
         "--spp",
@@ -38,8 +38,11 @@ fn renders_cornell_box_to_exr_and_png_and_compares_with_itself() {
         s(&png),
         "--stats",
         s(&stats),
-    ]));
-    // summary line: time, samples/s, rays/s
+    ]);
+    let out = ok(&o);
+    // not a terminal: no progress bar, nothing on stderr; one summary line (time, samples/s, rays/s)
+    assert_eq!(stderr(&o), "", "stderr should be empty when not a TTY");
+    assert_eq!(out.lines().count(), 1, "one summary line: {out}");
     assert!(
         out.contains("samples/s") && out.contains("rays/s"),
         "summary: {out}"
