@@ -12,6 +12,8 @@
 //!   cells, coefficients and their application to samples.
 //! - [`ocv`]: optimizing control variates, penalised least squares per estimate
 //!   [Fan eq. 7–11].
+//! - [`table`]: keyed tables of per-cell records (accumulators, coefficients), their wire
+//!   encoding (the opaque payload of the protocol's cell frames), merge and solve-all.
 //! - [`perlight`]: per-light mean-contribution coefficients of the `per_light_cv` baseline
 //!   [Hua §7.2].
 //! - [`composite`]: inverse-variance and Keller–Olkin weights with PSD check and fallbacks,
@@ -37,3 +39,4 @@ pub mod perceptual;
 pub mod perlight;
 pub mod reconstruct;
 pub mod solve;
+pub mod table;

@@ -245,3 +245,19 @@ proptest! {
         let _ = estimators::solve::CellCoefficients::decode(&with_magic);
     }
 }
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(64))]
+
+    #[test]
+    fn table_decode_never_panics(junk in prop::collection::vec(any::<u8>(), 0..300)) {
+        use estimators::table::decode_table;
+        let _ = decode_table::<CellAccumulator>(&junk);
+        let mut with_header = b"CVCT\x01\x00\x01\x00".to_vec();
+        with_header.extend_from_slice(&junk);
+        let _ = decode_table::<CellAccumulator>(&with_header);
+        let mut coeff_header = b"CVCT\x01\x00\x03\x00".to_vec();
+        coeff_header.extend_from_slice(&junk);
+        let _ = decode_table::<estimators::solve::CellCoefficients>(&coeff_header);
+    }
+}

@@ -1,0 +1,227 @@
+//! Keyed tables of per-cell records and their wire encoding: the opaque payload of the
+//! protocol's cell-accumulator frames and of the coefficient table the coordinator
+//! broadcasts.
+//!
+//! # Format (version 1, little endian)
+//! magic `CVCT`, `u16` version, `u16` kind ([`KIND_CELL_ACCUMULATORS`],
+//! [`KIND_MEAN_CONTRIBUTIONS`], [`KIND_COEFFICIENTS`]), `u32` record count, then per record
+//! `u64` cell key, `u32` byte length and the record's own encoding
+//! ([`CellAccumulator::encode`], [`MeanContributionAccumulator::encode`],
+//! [`CellCoefficients::encode`]). Keys are strictly increasing, so one table has one
+//! canonical encoding.
+//!
+//! # Contracts
+//! - Cell keys are the caller's (e.g. a linear index into the sparse grid); this module only
+//!   requires them unique.
+//! - [`merge_tables`] adds records key by key; merging the tables of a job's tasks in
+//!   canonical task order gives bitwise-reproducible sums.
+//! - Decoding validates everything ([`CellError`]) and never panics on arbitrary bytes.
+
+use std::collections::BTreeMap;
+
+use crate::cell::{CellAccumulator, CellError, Reader};
+use crate::perlight::MeanContributionAccumulator;
+use crate::solve::{CellCoefficients, SolvePolicy, solve};
+
+/// Magic bytes of an encoded table.
+pub const TABLE_MAGIC: [u8; 4] = *b"CVCT";
+/// Table encoding version.
+pub const TABLE_VERSION: u16 = 1;
+/// Kind tag: [`CellAccumulator`] records (`cms`, `optimal_mis`).
+pub const KIND_CELL_ACCUMULATORS: u16 = 1;
+/// Kind tag: [`MeanContributionAccumulator`] records (`per_light_cv`).
+pub const KIND_MEAN_CONTRIBUTIONS: u16 = 2;
+/// Kind tag: [`CellCoefficients`] records (the solved table).
+pub const KIND_COEFFICIENTS: u16 = 3;
+
+/// A record type that can live in a table.
+pub trait CellRecord: Sized {
+    /// Kind tag written in the table header.
+    const KIND: u16;
+    /// Encodes one record.
+    fn encode_record(&self) -> Vec<u8>;
+    /// Decodes one record.
+    fn decode_record(bytes: &[u8]) -> Result<Self, CellError>;
+}
+
+/// A record type whose tables can be merged (accumulators, not coefficients).
+pub trait MergeRecord: CellRecord + Clone {
+    /// Adds `other` into `self`.
+    fn merge_record(&mut self, other: &Self) -> Result<(), CellError>;
+}
+
+impl CellRecord for CellAccumulator {
+    const KIND: u16 = KIND_CELL_ACCUMULATORS;
+    fn encode_record(&self) -> Vec<u8> {
+        self.encode()
+    }
+    fn decode_record(bytes: &[u8]) -> Result<Self, CellError> {
+        Self::decode(bytes)
+    }
+}
+
+impl MergeRecord for CellAccumulator {
+    fn merge_record(&mut self, other: &Self) -> Result<(), CellError> {
+        self.merge(other)
+    }
+}
+
+impl CellRecord for MeanContributionAccumulator {
+    const KIND: u16 = KIND_MEAN_CONTRIBUTIONS;
+    fn encode_record(&self) -> Vec<u8> {
+        self.encode()
+    }
+    fn decode_record(bytes: &[u8]) -> Result<Self, CellError> {
+        Self::decode(bytes)
+    }
+}
+
+impl MergeRecord for MeanContributionAccumulator {
+    fn merge_record(&mut self, other: &Self) -> Result<(), CellError> {
+        self.merge(other)
+    }
+}
+
+impl CellRecord for CellCoefficients {
+    const KIND: u16 = KIND_COEFFICIENTS;
+    fn encode_record(&self) -> Vec<u8> {
+        self.encode()
+    }
+    fn decode_record(bytes: &[u8]) -> Result<Self, CellError> {
+        Self::decode(bytes)
+    }
+}
+
+/// Encodes a table (keys ascending by construction of the map).
+pub fn encode_table<T: CellRecord>(table: &BTreeMap<u64, T>) -> Vec<u8> {
+    let mut out = Vec::new();
+    out.extend_from_slice(&TABLE_MAGIC);
+    out.extend_from_slice(&TABLE_VERSION.to_le_bytes());
+    out.extend_from_slice(&T::KIND.to_le_bytes());
+    out.extend_from_slice(&(table.len() as u32).to_le_bytes());
+    for (key, rec) in table {
+        let bytes = rec.encode_record();
+        out.extend_from_slice(&key.to_le_bytes());
+        out.extend_from_slice(&(bytes.len() as u32).to_le_bytes());
+        out.extend_from_slice(&bytes);
+    }
+    out
+}
+
+/// The kind tag of an encoded table, without decoding the records.
+pub fn table_kind(bytes: &[u8]) -> Result<u16, CellError> {
+    let mut r = Reader::new(bytes);
+    if r.take(4)? != TABLE_MAGIC {
+        return Err(CellError::BadMagic);
+    }
+    let version = r.u16()?;
+    if version != TABLE_VERSION {
+        return Err(CellError::UnsupportedVersion(version));
+    }
+    r.u16()
+}
+
+/// Decodes and validates a table of `T` records.
+pub fn decode_table<T: CellRecord>(bytes: &[u8]) -> Result<BTreeMap<u64, T>, CellError> {
+    if table_kind(bytes)? != T::KIND {
+        return Err(CellError::BadHeader);
+    }
+    let mut r = Reader::new(bytes);
+    r.take(8)?;
+    let count = u64::from(r.u32()?);
+    // Every record needs at least its 12-byte key and length.
+    if count * 12 > r.remaining() as u64 {
+        return Err(CellError::BadEntryCount(count));
+    }
+    let mut table = BTreeMap::new();
+    let mut prev: Option<u64> = None;
+    for _ in 0..count {
+        let at = r.pos();
+        let key = r.u64()?;
+        if prev.is_some_and(|p| key <= p) {
+            return Err(CellError::BadPartition(at));
+        }
+        prev = Some(key);
+        let len = r.u32()? as usize;
+        let rec = T::decode_record(r.take(len)?)?;
+        table.insert(key, rec);
+    }
+    if !r.at_end() {
+        return Err(CellError::Trailing(r.remaining()));
+    }
+    Ok(table)
+}
+
+/// Merges `from` into `into` key by key (records of new keys are inserted).
+///
+/// On error (layout mismatch) `into` may be partially merged; callers validate layouts
+/// against the job first or discard the result.
+pub fn merge_tables<T: MergeRecord>(
+    into: &mut BTreeMap<u64, T>,
+    from: &BTreeMap<u64, T>,
+) -> Result<(), CellError> {
+    for (key, rec) in from {
+        match into.get_mut(key) {
+            Some(acc) => acc.merge_record(rec)?,
+            None => {
+                into.insert(*key, rec.clone());
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Solves every cell of a merged accumulator table ([`solve`]).
+pub fn solve_table(
+    cells: &BTreeMap<u64, CellAccumulator>,
+    policy: &SolvePolicy,
+) -> BTreeMap<u64, CellCoefficients> {
+    cells
+        .iter()
+        .map(|(k, acc)| (*k, solve(acc, policy)))
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cell::{ColorMode, ComponentLayout, CvSample};
+
+    fn acc(v: f64) -> CellAccumulator {
+        let mut a = CellAccumulator::new(ComponentLayout::new(3, 1).unwrap(), ColorMode::Rgb);
+        for i in 0..20u32 {
+            let s = CvSample {
+                pdf: 1.0 + f64::from(i),
+                partition: Some((i % 3, 1.0)),
+                overlapping: &[0.5],
+            };
+            a.add(1.0, [v, v * 2.0, 1.0], &s).unwrap();
+        }
+        a
+    }
+
+    #[test]
+    fn tables_round_trip_merge_and_solve() {
+        let t1: BTreeMap<u64, CellAccumulator> = [(5, acc(1.0)), (9, acc(2.0))].into();
+        let t2: BTreeMap<u64, CellAccumulator> = [(9, acc(3.0)), (12, acc(0.5))].into();
+        let bytes = encode_table(&t1);
+        assert_eq!(table_kind(&bytes), Ok(KIND_CELL_ACCUMULATORS));
+        let back: BTreeMap<u64, CellAccumulator> = decode_table(&bytes).unwrap();
+        assert_eq!(back, t1);
+        for n in 0..bytes.len() {
+            assert!(decode_table::<CellAccumulator>(&bytes[..n]).is_err());
+        }
+        assert_eq!(
+            decode_table::<CellCoefficients>(&bytes),
+            Err(CellError::BadHeader)
+        );
+        let mut merged = t1.clone();
+        merge_tables(&mut merged, &t2).unwrap();
+        assert_eq!(merged.len(), 3);
+        assert_eq!(merged[&9].samples(), 40);
+        let coeffs = solve_table(&merged, &SolvePolicy::default());
+        let cb = encode_table(&coeffs);
+        let back: BTreeMap<u64, CellCoefficients> = decode_table(&cb).unwrap();
+        assert_eq!(encode_table(&back), cb);
+    }
+}
