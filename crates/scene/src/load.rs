@@ -773,6 +773,9 @@ mod tests {
         let x = fov_x_deg(30.0, FovAxis::Smaller, 200, 100);
         assert!(((0.5 * x.to_radians()).tan() - 2.0 * (15f32.to_radians()).tan()).abs() < 1e-5);
         assert_eq!(fov_x_deg(30.0, FovAxis::Larger, 200, 100), 30.0);
+        // Mitsuba 3.9.1's `x_fov` for fov 30 on a 300×200 film, fov_axis y and diagonal.
+        assert!((fov_x_deg(30.0, FovAxis::Y, 300, 200) - 43.792_736).abs() < 1e-4);
+        assert!((fov_x_deg(30.0, FovAxis::Diagonal, 300, 200) - 25.136_77).abs() < 1e-4);
         // Mitsuba's default 50 mm lens: diagonal fov 2·atan(√(36²+24²)/100) → x fov 34.0221° at 1:1.
         let diag = (2.0 * ((36.0f32 * 36.0 + 24.0 * 24.0).sqrt() / 100.0).atan()).to_degrees();
         assert!((fov_x_deg(diag, FovAxis::Diagonal, 128, 128) - 34.0221).abs() < 2e-3);
