@@ -8,6 +8,7 @@ CREATE TABLE jobs (
     resolved    TEXT    NOT NULL,           -- ResolvedJob JSON
     scene_hash  TEXT    NOT NULL,
     estimator   TEXT    NOT NULL,
+    effects     TEXT    NOT NULL,           -- JSON list of the effects the scene calls for
     priority    BIGINT  NOT NULL,
     state       TEXT    NOT NULL,           -- running | done | failed | cancelled
     phase_idx   BIGINT  NOT NULL,

@@ -410,3 +410,77 @@ fn coordinator_killed_and_restarted_mid_job_completes_sqlite() {
 fn coordinator_killed_and_restarted_mid_job_completes_postgres() {
     restart_mid_job(Backend::Postgres);
 }
+
+#[test]
+fn priorities_first_then_fifo_and_cancel_stops_leasing() {
+    let db = TestDb::new(Backend::Sqlite);
+    let coord = Coordinator::start(db.config());
+    let client = Client::new(&coord.url());
+    let a = client.submit(&small_spec(1));
+    let b = client.submit(&small_spec(1));
+    let mut urgent = small_spec(1);
+    urgent["priority"] = serde_json::json!(5);
+    let c = client.submit(&urgent);
+    let w = FakeWorker::register(&coord.url());
+    // 16×16 in 8×8 tiles: 4 tasks per job. Highest priority first, then FIFO.
+    let order: Vec<i64> = (0..8).map(|_| w.lease().expect("lease").job_id).collect();
+    assert_eq!(order, [c, c, c, c, a, a, a, a]);
+
+    // Cancel b: nothing of it is leased any more; a leased task of a cancelled job is refused.
+    let r = client.request("POST", &format!("/v1/jobs/{a}/cancel"), None);
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    assert_eq!(r.json()["state"], "cancelled");
+    let r = client.request("POST", &format!("/v1/jobs/{a}/cancel"), None);
+    assert_eq!(r.status, 409);
+    assert_eq!(r.api_error().code, "not_running");
+    let r = client.request("POST", &format!("/v1/jobs/{b}/cancel"), None);
+    assert_eq!(r.status, 200);
+    assert!(
+        w.lease().is_none(),
+        "a cancelled job's tasks are not leased"
+    );
+    let r = client.request("GET", &format!("/v1/jobs/{b}/image.exr"), None);
+    assert_eq!(r.status, 409);
+    assert_eq!(r.api_error().code, "no_output");
+}
+
+#[test]
+fn retry_cap_fails_the_job_and_a_failing_worker_is_blocked_for_it() {
+    let db = TestDb::new(Backend::Sqlite);
+    let mut cfg = db.config();
+    cfg.max_attempts = 3;
+    cfg.max_worker_failures = 2;
+    let coord = Coordinator::start(cfg);
+    let client = Client::new(&coord.url());
+    let job = client.submit(&small_spec(1));
+    let x = FakeWorker::register(&coord.url());
+    let y = FakeWorker::register(&coord.url());
+    let fail = |w: &FakeWorker, l: &TaskLease| {
+        let r = w.c.request(
+            "POST",
+            &format!("/v1/tasks/{}/fail?attempt={}", l.task_id, l.attempt),
+            Some(b"boom".to_vec()),
+        );
+        assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    };
+    let l1 = x.lease().expect("lease");
+    fail(&x, &l1);
+    let l2 = x.lease().expect("lease");
+    assert_eq!((l2.task_id, l2.attempt), (l1.task_id, 2));
+    fail(&x, &l2);
+    // x failed twice on this job: it is blocked for it, y is not.
+    assert!(x.lease().is_none(), "blocked worker got a lease");
+    let l3 = y.lease().expect("lease");
+    assert_eq!((l3.task_id, l3.attempt), (l1.task_id, 3));
+    fail(&y, &l3);
+    let st = client.status(job);
+    assert_eq!(st.state, JobState::Failed);
+    assert!(
+        st.error.as_deref().unwrap_or("").contains("retry cap"),
+        "{st:?}"
+    );
+    // A failed job is not leased; its outputs are refused with a reason.
+    assert!(y.lease().is_none());
+    let r = client.request("GET", &format!("/v1/jobs/{job}/stats.json"), None);
+    assert_eq!(r.status, 409);
+}

@@ -163,3 +163,38 @@ async fn lease_holder(coord: &Coordinator, task: i64) -> Option<(i64, i64)> {
         None
     }
 }
+
+#[test]
+fn graceful_worker_stop_finishes_the_tile_in_hand() {
+    let db = TestDb::new(Backend::Sqlite);
+    let coord = Coordinator::start(db.config());
+    let client = Client::new(&coord.url());
+    let scene = scene_json("cornell-box/scene.json");
+    let id = client.submit(&spec(&scene, 32, 256, 16, 1));
+    let w = Worker::start(&coord.url(), "w");
+    while coord.block_on(leased_task_of(&coord, id)).is_none() {
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let summary = w.stop();
+    assert!(summary.uploaded >= 1, "{summary:?}");
+    assert_eq!(summary.stale, 0);
+    // Nothing is left leased by the stopped worker: every lease was finished or released.
+    assert_eq!(coord.block_on(leased_task_of(&coord, id)), None);
+    let w2 = Worker::start(&coord.url(), "w2");
+    let status = client.wait(id, Duration::from_secs(120));
+    assert_eq!(status.state, JobState::Done);
+    w2.stop();
+    let stats: serde_json::Value =
+        serde_json::from_slice(&client.download(id, "stats.json")).expect("stats");
+    assert_eq!(
+        stats["attempts"].as_u64(),
+        Some(status.tasks_total),
+        "no tile was rendered twice"
+    );
+    let effects: Vec<String> = serde_json::from_value(stats["effects"].clone()).expect("effects");
+    assert!(
+        effects.iter().any(|e| e.starts_with("area_lights")),
+        "{effects:?}"
+    );
+    assert!(effects.iter().any(|e| e == "bsdf:diffuse"), "{effects:?}");
+}

@@ -118,7 +118,7 @@ fn build_outputs(
         estimated_rel_mse: img.estimated_rel_mse(),
         tasks: blobs.len() as u64,
         attempts: attempts.max(0) as u64,
-        effects: Vec::new(),
+        effects: job.effects.clone(),
     };
     let stats = serde_json::to_vec_pretty(&stats).map_err(|e| FinishError::Image(e.to_string()))?;
     Ok([exr, png, stats])

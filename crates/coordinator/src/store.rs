@@ -75,6 +75,8 @@ pub struct JobRow {
     pub scene_hash: String,
     /// Estimator name.
     pub estimator: String,
+    /// Effects and techniques simulated (from `scene::Features`).
+    pub effects: Vec<String>,
     /// Priority.
     pub priority: i64,
     /// State.
@@ -87,6 +89,25 @@ pub struct JobRow {
     pub created_ms: i64,
     /// Completion time.
     pub finished_ms: Option<i64>,
+}
+
+/// A job to create ([`Store::create_job`]).
+#[derive(Clone, Copy, Debug)]
+pub struct NewJob<'a> {
+    /// JobSpec JSON (scene replaced by its bundle hash).
+    pub spec_json: &'a str,
+    /// Resolved settings.
+    pub resolved: &'a ResolvedJob,
+    /// Scene document address.
+    pub scene_hash: &'a str,
+    /// Estimator name.
+    pub estimator: &'a str,
+    /// Effects simulated.
+    pub effects: &'a [String],
+    /// Priority.
+    pub priority: i64,
+    /// The task plan of the first phase.
+    pub plan: &'a [TaskPlan],
 }
 
 /// A task as leased.
@@ -172,6 +193,7 @@ fn rect_of(row: &AnyRow) -> Result<TileRect> {
 fn job_of(row: &AnyRow) -> Result<JobRow> {
     let resolved: String = row.try_get("resolved")?;
     let state: String = row.try_get("state")?;
+    let effects: String = row.try_get("effects")?;
     Ok(JobRow {
         id: row.try_get("id")?,
         spec: row.try_get("spec")?,
@@ -179,6 +201,7 @@ fn job_of(row: &AnyRow) -> Result<JobRow> {
             .map_err(|e| StoreError::Corrupt(e.to_string()))?,
         scene_hash: row.try_get("scene_hash")?,
         estimator: row.try_get("estimator")?,
+        effects: serde_json::from_str(&effects).map_err(|e| StoreError::Corrupt(e.to_string()))?,
         priority: row.try_get("priority")?,
         state: JobState::parse(&state)
             .ok_or_else(|| StoreError::Corrupt(format!("job state {state}")))?,
@@ -189,7 +212,7 @@ fn job_of(row: &AnyRow) -> Result<JobRow> {
     })
 }
 
-const JOB_COLS: &str = "id, spec, resolved, scene_hash, estimator, priority, state, phase_idx, error, created_ms, finished_ms";
+const JOB_COLS: &str = "id, spec, resolved, scene_hash, estimator, effects, priority, state, phase_idx, error, created_ms, finished_ms";
 const TASK_COLS: &str = "id, job_id, phase_idx, x0, y0, width, height, sample_start, sample_end, state, attempt, worker_id, done_attempt";
 
 impl Store {
@@ -349,28 +372,30 @@ impl Store {
     // ---- jobs --------------------------------------------------------------------------
 
     /// Creates a job with one `render` phase and its tasks, in one transaction.
-    pub async fn create_job(
-        &self,
-        spec_json: &str,
-        resolved: &ResolvedJob,
-        scene_hash: &str,
-        estimator: &str,
-        priority: i64,
-        plan: &[TaskPlan],
-    ) -> Result<i64> {
+    pub async fn create_job(&self, job: &NewJob<'_>) -> Result<i64> {
+        let NewJob {
+            spec_json,
+            resolved,
+            scene_hash,
+            estimator,
+            effects,
+            priority,
+            plan,
+        } = *job;
         let now = now_ms();
         let resolved_json =
             serde_json::to_string(resolved).map_err(|e| StoreError::Corrupt(e.to_string()))?;
         let mut tx = self.pool.begin().await?;
         let sql = self.sql(
-            "INSERT INTO jobs (spec, resolved, scene_hash, estimator, priority, state, phase_idx, created_ms) \
-             VALUES (?, ?, ?, ?, ?, 'running', 0, ?) RETURNING id",
+            "INSERT INTO jobs (spec, resolved, scene_hash, estimator, effects, priority, state, phase_idx, created_ms) \
+             VALUES (?, ?, ?, ?, ?, ?, 'running', 0, ?) RETURNING id",
         );
         let row = sqlx::query(&sql)
             .bind(spec_json)
             .bind(resolved_json)
             .bind(scene_hash)
             .bind(estimator)
+            .bind(serde_json::to_string(effects).unwrap_or_else(|_| "[]".into()))
             .bind(priority)
             .bind(now)
             .fetch_one(&mut *tx)

@@ -27,7 +27,7 @@ use crate::AppState;
 use crate::auth::require_token;
 use crate::error::{AppError, AppResult};
 use crate::finish::OUTPUTS;
-use crate::store::JobRow;
+use crate::store::{JobRow, NewJob};
 
 /// Routes of this module.
 pub fn router() -> Router<Arc<AppState>> {
@@ -130,7 +130,7 @@ async fn submit(
         };
         assets.insert(name, bytes);
     }
-    validate_scene(desc, assets).await?;
+    let effects = validate_scene(desc, assets, resolved.max_depth).await?;
 
     st.store.put_blob(&scene_hash, &scene_bytes).await?;
     let mut stored = spec.clone();
@@ -140,14 +140,15 @@ async fn submit(
     let plan = plan_tasks(&resolved);
     let job_id = st
         .store
-        .create_job(
-            &stored_json,
-            &resolved,
-            &scene_hash,
-            spec.estimator.name(),
-            i64::from(spec.priority),
-            &plan,
-        )
+        .create_job(&NewJob {
+            spec_json: &stored_json,
+            resolved: &resolved,
+            scene_hash: &scene_hash,
+            estimator: spec.estimator.name(),
+            effects: &effects,
+            priority: i64::from(spec.priority),
+            plan: &plan,
+        })
         .await?;
     tracing::info!(job = job_id, tasks = plan.len(), "job submitted");
     st.work_available.notify_waiters();
@@ -161,23 +162,63 @@ async fn submit(
 }
 
 /// Loads the scene with `scene`'s validator over the uploaded assets (CPU work, off the
-/// async threads). The coordinator never builds render structures, it only validates.
-async fn validate_scene(desc: SceneDesc, assets: BTreeMap<String, Vec<u8>>) -> AppResult<()> {
-    tokio::task::spawn_blocking(move || crate::routes::jobs::load_scene(&desc, assets))
+/// async threads) and lists the effects it calls for. The coordinator never builds render
+/// structures, it only validates.
+async fn validate_scene(
+    desc: SceneDesc,
+    assets: BTreeMap<String, Vec<u8>>,
+    max_depth: i32,
+) -> AppResult<Vec<String>> {
+    tokio::task::spawn_blocking(move || load_scene(&desc, assets).map(|f| effects(&f, max_depth)))
         .await
         .map_err(|e| AppError::Internal(e.to_string()))?
 }
 
 /// Scene validation proper: loads `desc` with `scene::load` over in-memory assets.
-pub fn load_scene(desc: &SceneDesc, assets: BTreeMap<String, Vec<u8>>) -> AppResult<()> {
+pub fn load_scene(
+    desc: &SceneDesc,
+    assets: BTreeMap<String, Vec<u8>>,
+) -> AppResult<scene::Features> {
     let mut mem = scene::MemoryAssets::new();
     for (name, bytes) in assets {
         mem.insert(&name, bytes)
             .map_err(|e| invalid_scene(e.to_string(), &format!("assets.{name}")))?;
     }
-    scene::load(desc, &mem)
-        .map(|_| ())
-        .map_err(|e| invalid_scene(e.to_string(), "scene"))
+    let loaded = scene::load(desc, &mem).map_err(|e| invalid_scene(e.to_string(), "scene"))?;
+    Ok(scene::Features::of(&loaded.scene))
+}
+
+/// The effects a job simulates (DESIGN §1, "simulate only the effects a scene calls for"),
+/// as short tags recorded in `stats.json`.
+pub fn effects(f: &scene::Features, max_depth: i32) -> Vec<String> {
+    let mut out = Vec::new();
+    if f.area_emitters > 0 {
+        out.push(format!("area_lights:{}", f.area_emitters));
+    }
+    match f.environment {
+        scene::EnvironmentKind::None => {}
+        scene::EnvironmentKind::Envmap => out.push("environment:envmap".into()),
+        scene::EnvironmentKind::Constant => out.push("environment:constant".into()),
+    }
+    for k in &f.bsdf_kinds {
+        let name = serde_json::to_value(k)
+            .ok()
+            .and_then(|v| v.as_str().map(str::to_owned));
+        out.push(format!("bsdf:{}", name.unwrap_or_else(|| format!("{k:?}"))));
+    }
+    if f.textures > 0 {
+        out.push(format!("textures:{}", f.textures));
+    }
+    if f.delta_lobes {
+        out.push("delta_lobes".into());
+    }
+    out.push(match max_depth {
+        1 => "emitters_only".into(),
+        2 => "direct_only".into(),
+        -1 => "indirect:unbounded".into(),
+        d => format!("indirect:max_depth={d}"),
+    });
+    out
 }
 
 fn job_status(job: &JobRow, progress: crate::store::Progress) -> AppResult<JobStatus> {
