@@ -22,7 +22,7 @@
 //! | `--tile-size N` | `CVFARM_TILE_SIZE` | 32 | tile edge in pixels (does not change the image) |
 //! | `-o, --output F` | `CVFARM_OUTPUT` | — | EXR file to write (parent directories are created) |
 //! | `--png F` | `CVFARM_PNG` | none | also write an sRGB PNG preview |
-//! | `--stats F` | `CVFARM_STATS` | none | also write the render statistics as JSON |
+//! | `--stats F` | `CVFARM_STATS` | none | also write the render statistics (and the scene's `Features`) as JSON |
 //!
 //! ```text
 //! $ cvfarm render scenes/cornell-box/scene.json --spp 64 -o out/cbox.exr --png out/cbox.png
@@ -281,8 +281,13 @@ pub fn run(args: &RenderArgs) -> Result<ExitCode> {
     {
         ensure_parent(path)?;
     }
-    let scene = load_scene(args)?;
+    let mut scene = load_scene(args)?;
     let st = settings(&scene, args)?;
+    // The effects this render simulates (with the command line's path length).
+    scene.integrator.max_depth = st.max_depth;
+    scene.integrator.rr_depth = st.rr_depth;
+    scene.integrator.hide_emitters = st.hide_emitters;
+    let features = scene::Features::of(&scene);
     let options = RenderOptions {
         tile_size: args.tile_size,
         threads: args.threads,
@@ -354,6 +359,7 @@ pub fn run(args: &RenderArgs) -> Result<ExitCode> {
             "rays_per_s": rays_per_s,
             "rejected_samples": film.rejected,
             "mean": mean,
+            "features": serde_json::to_value(&features).unwrap_or_default(),
         });
         std::fs::write(path, format!("{doc:#}\n"))
             .with_context(|| format!("writing {}", path.display()))?;

@@ -81,6 +81,19 @@ fn every_shipped_scene_renders_finite_and_not_black() {
             Some(0),
             "{name}: rejected samples"
         );
+        let emitters = st["features"]["emitters"].as_u64().unwrap_or(0);
+        let expected_emitters = match name.as_str() {
+            "cornell-box" | "envmap" => 1,
+            "checkers" => 2,
+            "colour-lamp" => 3,
+            "veach-mis" => 4,
+            "many-lights" => 64,
+            _ => emitters,
+        };
+        assert_eq!(
+            emitters, expected_emitters,
+            "{name}: emitters in --stats features"
+        );
         let mean: f64 = beauty
             .data
             .iter()
