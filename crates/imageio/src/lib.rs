@@ -537,6 +537,23 @@ mod tests {
     }
 
     #[test]
+    fn jpeg_decodes_to_raw_values() {
+        // A flat grey JPEG: lossy, but a constant image survives within a couple of levels.
+        let raw = image::RgbImage::from_pixel(16, 8, image::Rgb([128, 64, 200]));
+        let mut jpeg = Cursor::new(Vec::new());
+        raw.write_to(&mut jpeg, image::ImageFormat::Jpeg).unwrap();
+        let (w, h, px) = decode_ldr(jpeg.get_ref()).unwrap();
+        assert_eq!((w, h, px.len()), (16, 8, 128));
+        for p in &px {
+            for (got, want) in p.iter().zip([128.0f32, 64.0, 200.0]) {
+                assert!((got * 255.0 - want).abs() <= 3.0, "{got}");
+            }
+        }
+        let bytes = jpeg.into_inner();
+        assert!(decode_ldr(&bytes[..bytes.len() / 3]).is_err());
+    }
+
+    #[test]
     fn truncated_png_is_an_error() {
         let bytes = encode_png_preview(4, 4, &[[0.3; 3]; 16]).unwrap();
         for cut in [0, 3, 10, 40, bytes.len() - 5] {

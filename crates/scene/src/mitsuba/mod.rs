@@ -244,7 +244,12 @@ impl<'n> Props<'n> {
         let mut nested = Vec::new();
         for c in &owner.children {
             match c.attr("name") {
-                Some(name) if VALUE_TAGS.contains(&c.tag.as_str()) || c.tag == "bsdf" => {
+                // Exporters name nested plugins and refs to them (`<ref name="bsdf" id=".."/>`):
+                // those stay nested objects, not parameters.
+                Some(name)
+                    if VALUE_TAGS.contains(&c.tag.as_str())
+                        && !(c.tag == "ref" && (name.starts_with("bsdf") || name == "emitter")) =>
+                {
                     if items.iter().any(|(n, _, _)| *n == name) {
                         return Err(c.error(format!("parameter `{name}` given twice")));
                     }
@@ -1032,6 +1037,21 @@ mod tests {
             assert!(e.contains(needle), "{body}: {e}");
             assert!(e.starts_with("scene.xml:1:"), "{e}");
         }
+    }
+
+    #[test]
+    fn named_nested_plugins_and_refs() {
+        let d = imp(
+            "<bsdf type=\"diffuse\" id=\"w\"/>\
+             <shape type=\"cube\"><ref name=\"bsdf\" id=\"w\"/></shape>\
+             <shape type=\"cube\"><bsdf type=\"twosided\" name=\"bsdf\"><ref name=\"bsdf_0\" id=\"w\"/></bsdf></shape>",
+        )
+        .unwrap();
+        assert_eq!(d.shapes[0].material, Some(MaterialRef::Named("w".into())));
+        assert!(matches!(
+            d.shapes[1].material,
+            Some(MaterialRef::Inline(MaterialDesc::TwoSided { .. }))
+        ));
     }
 
     #[test]
