@@ -301,3 +301,98 @@ fn hide_emitters_lets_camera_rays_pass_through_area_lights() {
         "hidden emitter shows the plane behind it: {c:?}"
     );
 }
+
+/// The CV plug-in contract: the vertex records carry enough to rebuild the estimate exactly —
+/// `Σ_v β_v [value·w(p_light, p_bsdf)/p_light + weight/q·emitted·w(p_bsdf, p_light)]` equals
+/// the radiance `trace` returns (camera ray never sees an emitter here).
+#[test]
+fn vertex_records_reconstruct_the_path_estimate() {
+    use render::integrator::{VertexObserver, VertexRecord, path};
+    use render::sampler::Sampler;
+
+    #[derive(Default)]
+    struct Rebuild {
+        sum: Vec3,
+        vertices: usize,
+        mis: render::MisHeuristic,
+    }
+    impl VertexObserver for Rebuild {
+        fn vertex(&mut self, r: &VertexRecord) {
+            self.vertices += 1;
+            if let Some(l) = r.light {
+                assert!(l.pdf_light > 0.0 && l.pdf_bsdf >= 0.0);
+                let w = self.mis.weight(l.pdf_light, l.pdf_bsdf);
+                self.sum += r.throughput * l.value * (w / l.pdf_light);
+            }
+            if let Some(b) = r.bsdf
+                && b.traced
+                && b.emitted != Vec3::ZERO
+            {
+                let w = if b.delta {
+                    1.0
+                } else {
+                    self.mis.weight(b.pdf_bsdf, b.pdf_light)
+                };
+                self.sum += r.throughput * b.weight / b.rr_q * b.emitted * w;
+            }
+        }
+    }
+
+    // Camera looks down at a large grey floor; a spherical light and a constant env light it.
+    let mut s = empty_scene(
+        look_at(Vec3::new(0.0, 2.0, 0.0), Vec3::ZERO, Vec3::Z),
+        40.0,
+        8,
+        8,
+    );
+    s.environment = constant_env(Vec3::splat(0.3));
+    let grey = add_material(&mut s, diffuse(Vec3::splat(0.7), true));
+    s.meshes.push(quad(
+        Vec3::ZERO,
+        Vec3::new(0.0, 0.0, 20.0),
+        Vec3::new(20.0, 0.0, 0.0),
+        grey,
+        None,
+    ));
+    s.spheres
+        .push(sphere(Vec3::new(0.4, 0.6, 0.3), 0.2, grey, None));
+    s.spheres.push(sphere(
+        Vec3::new(3.0, 1.5, 0.0),
+        0.5,
+        grey,
+        Some(Vec3::splat(10.0)),
+    ));
+    for mis in [render::MisHeuristic::Power, render::MisHeuristic::Balance] {
+        let st = RenderSettings {
+            spp: 1,
+            max_depth: 6,
+            rr_depth: 2,
+            mis,
+            ..RenderSettings::from_scene(&s)
+        };
+        let rs = RenderScene::new(&s, &st).unwrap();
+        let mut vertices = 0;
+        for i in 0..512u32 {
+            let mut sampler = Sampler::new(7, i % 64, i / 64);
+            let u = sampler.next_2d();
+            let ray = rs.camera.ray(glam::Vec2::new(
+                (i % 8) as f32 + u.x,
+                ((i / 8) % 8) as f32 + u.y,
+            ));
+            let mut obs = Rebuild {
+                mis,
+                ..Rebuild::default()
+            };
+            let out = path::trace(&rs, &st, ray, &mut sampler, &mut obs);
+            vertices += obs.vertices;
+            let tol = 1e-4 * out.radiance.max_element().max(1.0);
+            assert!(
+                (out.radiance - obs.sum).abs().max_element() <= tol,
+                "sample {i}: {} vs {}",
+                out.radiance,
+                obs.sum
+            );
+        }
+        assert!(vertices > 512, "multi-vertex paths expected ({vertices})");
+    }
+}

@@ -311,6 +311,9 @@ pub struct BsdfTechnique {
     /// Whether the continuation ray was traced (false when Russian roulette ended the path
     /// first; then `emitted` and `pdf_light` are unknown and left at 0).
     pub traced: bool,
+    /// Russian-roulette continuation probability applied after this sample (1 when roulette
+    /// was inactive): the path continued with throughput `throughput · weight / rr_q`.
+    pub rr_q: f32,
 }
 
 /// Everything a CV estimator needs at one path vertex.

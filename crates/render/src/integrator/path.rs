@@ -194,10 +194,11 @@ pub fn trace<O: VertexObserver>(
         depth += 1;
         let beta_max = beta.max_element();
         let mut alive = beta_max > 0.0 && beta.is_finite();
+        let mut rr_q = 1.0;
         if alive && depth as i64 >= i64::from(st.rr_depth) {
-            let q = beta_max.min(0.95);
-            if u_rr < q {
-                beta /= q;
+            rr_q = beta_max.min(0.95);
+            if u_rr < rr_q {
+                beta /= rr_q;
             } else {
                 alive = false;
             }
@@ -211,6 +212,7 @@ pub fn trace<O: VertexObserver>(
             emitted: Vec3::ZERO,
             delta: bs.delta,
             traced: false,
+            rr_q,
         };
         if !alive {
             observer.vertex(&VertexRecord {
