@@ -73,9 +73,38 @@ pub fn speedup(error: f64, seconds: f64, base_error: f64, base_seconds: f64) -> 
     }
 }
 
+/// relMSE estimated without a reference (DESIGN §6): the mean over entries of
+/// `Var[x] / (x² + ε)`, where `variance` is the variance **of the estimate** `x` (sample
+/// variance divided by the sample count), per entry. For an unbiased estimator the expected
+/// squared error equals that variance. Non-finite entries are skipped; `None` if the
+/// lengths differ or nothing is finite.
+pub fn estimated_rel_mse(estimate: &[f32], variance: &[f32]) -> Option<f64> {
+    if estimate.len() != variance.len() {
+        return None;
+    }
+    let (mut sum, mut n) = (0.0f64, 0usize);
+    for (&x, &v) in estimate.iter().zip(variance) {
+        if !x.is_finite() || !v.is_finite() || v < 0.0 {
+            continue;
+        }
+        let x = f64::from(x);
+        sum += f64::from(v) / (x * x + REL_MSE_EPSILON);
+        n += 1;
+    }
+    (n > 0).then(|| sum / n as f64)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn estimated_rel_mse_is_variance_over_value_squared() {
+        let e = estimated_rel_mse(&[1.0, 0.0, f32::NAN], &[0.5, 0.01, 1.0]).unwrap();
+        assert!((e - (0.5 / 1.01 + 0.01 / 0.01) / 2.0).abs() < 1e-9);
+        assert_eq!(estimated_rel_mse(&[1.0], &[]), None);
+        assert_eq!(estimated_rel_mse(&[f32::NAN], &[1.0]), None);
+    }
 
     #[test]
     fn identical_images_have_zero_error() {
