@@ -6,6 +6,8 @@
 //! r, _ = sen.sample_ray(0.0, 0.0, mi.Point2f(x, y), mi.Point2f(0.5, 0.5))  # x, y in [0,1]²
 //! ```
 
+#![allow(clippy::excessive_precision)] // Mitsuba printouts kept verbatim.
+
 use std::path::PathBuf;
 
 use glam::{Vec2, Vec3};
