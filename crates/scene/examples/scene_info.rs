@@ -35,6 +35,15 @@ fn main() {
         println!("camera.to_world row {r}: {:?}", m.row(r).to_array());
     }
     for (i, mesh) in s.meshes.iter().enumerate() {
+        let area: f32 = mesh
+            .indices
+            .iter()
+            .map(|t| {
+                let [a, b, c] = t.map(|k| mesh.positions[k as usize]);
+                0.5 * (b - a).cross(c - a).length()
+            })
+            .sum();
+        println!("mesh {i}: area {area}");
         println!(
             "mesh {i}: {} triangles, {} vertices, emitter {:?}",
             mesh.indices.len(),

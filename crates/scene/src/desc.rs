@@ -60,6 +60,11 @@ pub struct SceneDesc {
 /// | `fov_axis` | `x`, `y`, `diagonal`, `smaller`, `larger` | `x` | which image extent `fov` spans |
 /// | `transform` | [`TransformDesc`] | identity | camera-to-world |
 /// | `near_clip`, `far_clip` | length | 0.01, 10000 | ray extent |
+///
+/// ```json
+/// "camera": { "fov": 39.3077, "fov_axis": "smaller", "near_clip": 10, "far_clip": 2800,
+///             "transform": [ { "look_at": { "origin": [278, 273, -800], "target": [278, 273, -799], "up": [0, 1, 0] } } ] }
+/// ```
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct CameraDesc {
@@ -104,6 +109,10 @@ pub enum FovAxis {
 }
 
 /// `film`: the output image size in pixels (box pixel filter).
+///
+/// ```json
+/// "film": { "width": 128, "height": 96 }
+/// ```
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct FilmDesc {
@@ -166,6 +175,15 @@ impl Default for IntegratorDesc {
 /// ```json
 /// [ { "scale": [2, 2, 2] }, { "rotate": { "axis": [0, 1, 0], "angle": 30 } }, { "translate": [0, 1, 0] } ]
 /// ```
+///
+/// A camera frame and a row-major matrix:
+///
+/// ```json
+/// [ { "look_at": { "origin": [0, 1, 4], "target": [0, 1, 0], "up": [0, 1, 0] } } ]
+/// ```
+/// ```json
+/// [ { "matrix": [1, 0, 0, 5,  0, 1, 0, 0,  0, 0, 1, 0,  0, 0, 0, 1] } ]
+/// ```
 pub type TransformDesc = Vec<TransformOp>;
 
 /// One step of a [`TransformDesc`].
@@ -224,7 +242,9 @@ pub enum ColorDesc {
 ///
 /// ```json
 /// "textures": { "checks": { "type": "checkerboard", "color0": [0.9, 0.9, 0.9], "color1": [0.1, 0.1, 0.1],
-///                           "uv_transform": [ { "scale": [8, 8, 1] } ] } }
+///                           "uv_transform": [ { "scale": [8, 8, 1] } ] },
+///               "wood":   { "type": "bitmap", "filename": "textures/wood.jpg", "filter": "bilinear", "wrap": "repeat" },
+///               "albedo": { "type": "bitmap", "filename": "textures/albedo.png", "raw": true, "filter": "nearest" } }
 /// ```
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
@@ -318,7 +338,15 @@ pub enum Distribution {
 /// | `twosided` | `bsdf`: the material used on both sides |
 ///
 /// ```json
-/// "gold": { "type": "roughconductor", "alpha": 0.15, "eta": [0.143, 0.374, 1.442], "k": [3.983, 2.385, 1.603] }
+/// "materials": {
+///   "white":  { "type": "diffuse", "reflectance": [0.8, 0.8, 0.8] },
+///   "wood":   { "type": "diffuse", "reflectance": { "texture": "wood" } },
+///   "mirror": { "type": "conductor", "eta": [0, 0, 0], "k": [1, 1, 1] },
+///   "gold":   { "type": "roughconductor", "alpha": 0.15, "eta": [0.143, 0.374, 1.442], "k": [3.983, 2.385, 1.603] },
+///   "blue":   { "type": "roughplastic", "distribution": "beckmann", "alpha": 0.1, "int_ior": 1.5, "ext_ior": 1.0,
+///               "diffuse_reflectance": [0.1, 0.3, 0.6] },
+///   "paper":  { "type": "twosided", "bsdf": { "type": "diffuse", "reflectance": 0.7 } }
+/// }
 /// ```
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
@@ -452,7 +480,15 @@ pub struct AreaEmitterDesc {
 /// | `mesh` | `positions`, `indices`, optional `normals`, `uvs` — geometry written inline |
 ///
 /// ```json
-/// { "type": "obj", "filename": "meshes/bunny.obj", "material": "gold", "transform": [ { "scale": [2, 2, 2] } ] }
+/// "shapes": [
+///   { "type": "obj", "filename": "meshes/bunny.obj", "material": "gold", "transform": [ { "scale": [2, 2, 2] } ] },
+///   { "type": "ply", "filename": "meshes/sphere.ply", "face_normals": true, "material": "blue" },
+///   { "type": "rectangle", "transform": [ { "rotate": { "axis": [1, 0, 0], "angle": 90 } } ], "flip_normals": true,
+///     "emitter": { "radiance": [17, 12, 4] } },
+///   { "type": "cube", "material": { "type": "diffuse", "reflectance": [0.5, 0.2, 0.2] } },
+///   { "type": "sphere", "center": [0, 1, 0], "radius": 0.25, "emitter": { "radiance": [5, 5, 5] } },
+///   { "type": "mesh", "positions": [[0, 0, 0], [1, 0, 0], [0, 1, 0]], "indices": [[0, 1, 2]], "uvs": [[0, 0], [1, 0], [0, 1]] }
+/// ]
 /// ```
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(try_from = "ShapeRepr")]
@@ -631,7 +667,11 @@ fn default_radius() -> f32 {
 /// | `constant` | `radiance` |
 ///
 /// ```json
-/// "environment": { "type": "envmap", "filename": "textures/museum.exr", "scale": 1.0 }
+/// "environment": { "type": "envmap", "filename": "textures/museum.exr", "scale": 1.0,
+///                  "transform": [ { "rotate": { "axis": [0, 1, 0], "angle": 90 } } ] }
+/// ```
+/// ```json
+/// "environment": { "type": "constant", "radiance": [0.2, 0.2, 0.25] }
 /// ```
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]

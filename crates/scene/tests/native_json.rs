@@ -364,3 +364,79 @@ fn desc_round_trips_through_json() {
         }
     ));
 }
+
+/// Every JSON snippet in the format's docs (`src/desc.rs`) is valid and means what it says:
+/// fragments `"key": value` are parsed as the field they show.
+#[test]
+fn doc_snippets_parse() {
+    let src = include_str!("../src/desc.rs");
+    let mut blocks = Vec::new();
+    let mut current: Option<String> = None;
+    for line in src.lines() {
+        let t = line.trim_start();
+        let Some(doc) = t.strip_prefix("///").or_else(|| t.strip_prefix("//!")) else {
+            continue;
+        };
+        let doc = doc.strip_prefix(' ').unwrap_or(doc);
+        match (&mut current, doc.trim()) {
+            (None, "```json") => current = Some(String::new()),
+            (Some(b), "```") => {
+                blocks.push(std::mem::take(b));
+                current = None;
+            }
+            (Some(b), _) => {
+                b.push_str(doc);
+                b.push('\n');
+            }
+            _ => {}
+        }
+    }
+    assert!(blocks.len() >= 12, "found {} snippets", blocks.len());
+    let mut checked = 0;
+    for b in &blocks {
+        let t = b.trim();
+        if t.starts_with("{ \"camera\"") || t.starts_with("{\n") {
+            scene::from_json_str(t).unwrap_or_else(|e| panic!("{e}\n{t}"));
+            checked += 1;
+            continue;
+        }
+        if t.starts_with('[')
+            && !t.contains('\n')
+            && t.contains("look_at") | t.contains("matrix") | t.contains("scale")
+        {
+            let ops: scene::desc::TransformDesc =
+                serde_json::from_str(t).unwrap_or_else(|e| panic!("{e}\n{t}"));
+            scene::transform::to_matrix(&ops, "snippet").unwrap();
+            checked += 1;
+            continue;
+        }
+        if let Some((key, value)) = t.split_once(':').filter(|(k, _)| k.starts_with('"')) {
+            let key = key.trim().trim_matches('"');
+            let v = value.trim();
+            let r = match key {
+                "camera" => serde_json::from_str::<scene::desc::CameraDesc>(v).map(drop),
+                "film" => serde_json::from_str::<scene::desc::FilmDesc>(v).map(drop),
+                "integrator" => serde_json::from_str::<scene::desc::IntegratorDesc>(v).map(drop),
+                "textures" => {
+                    serde_json::from_str::<std::collections::BTreeMap<String, TextureDesc>>(v)
+                        .map(drop)
+                }
+                "materials" => {
+                    serde_json::from_str::<std::collections::BTreeMap<String, MaterialDesc>>(v)
+                        .map(drop)
+                }
+                "shapes" => serde_json::from_str::<Vec<scene::desc::ShapeDesc>>(v).map(drop),
+                "emitter" => serde_json::from_str::<scene::desc::AreaEmitterDesc>(v).map(drop),
+                "environment" => serde_json::from_str::<scene::desc::EnvironmentDesc>(v).map(drop),
+                _ => continue,
+            };
+            r.unwrap_or_else(|e| panic!("snippet for {key}: {e}\n{t}"));
+            checked += 1;
+        }
+    }
+    assert!(
+        checked >= 12,
+        "checked {checked} of {} snippets",
+        blocks.len()
+    );
+}
