@@ -38,7 +38,7 @@
 //! cell; it touches the dense block, the overlapping right-hand sides and the one sampled
 //! partition's entry (found through a direct index map when `P <= DIRECT_MAP_MAX`, else by
 //! binary search with a one-entry cache for runs of samples from the same light).
-//! Measured: ~28 ns per sample for `P = 64`, `K = 2`, RGB (`benches/cells.rs`).
+//! Measured: 18–28 ns per sample for `P = 64`, `K = 2`, RGB (`benches/cells.rs`).
 
 use thiserror::Error;
 

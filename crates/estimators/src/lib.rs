@@ -25,6 +25,30 @@
 //! - [`metrics`]: relMSE, MSE, efficiency and speedup (DESIGN §6).
 //! - [`perceptual`]: Fan's perceptual error with the tvi function [Fan eq. 12].
 
+//! # The CV pipeline in one example
+//! ```
+//! use estimators::cell::{CellAccumulator, ColorMode, ComponentLayout, CvSample, training_weight};
+//! use estimators::solve::{SolvePolicy, solve};
+//!
+//! // Two lights (partitions) and a BSDF component (overlapping).
+//! let layout = ComponentLayout::new(2, 1).unwrap();
+//! let mut cell = CellAccumulator::new(layout, ColorMode::Rgb);
+//! // Training pass, per sample: weight, F = f/p, mixture density p and the λ's.
+//! for i in 0..64 {
+//!     let light = (i % 2) as u32;
+//!     let s = CvSample { pdf: 2.0, partition: Some((light, 1.5)), overlapping: &[0.5] };
+//!     let w = training_weight(1.0, Some(0.3));
+//!     cell.add(w, [0.8, 0.4, 0.2 + 0.01 * i as f64], &s).unwrap();
+//! }
+//! // Coordinator: merge cells in task order, then solve each.
+//! let coeffs = solve(&cell, &SolvePolicy::default());
+//! // Render pass, per vertex: Σα once, and F − Σ α_k λ_k / p per sample.
+//! let s = CvSample { pdf: 2.0, partition: Some((1, 1.5)), overlapping: &[0.5] };
+//! let controlled = coeffs.apply([0.8, 0.4, 0.5], &s);
+//! let vertex_estimate: Vec<f64> = (0..3).map(|c| coeffs.alpha_sum()[c] + controlled[c]).collect();
+//! assert!(vertex_estimate.iter().all(|v| v.is_finite()));
+//! ```
+
 #![deny(missing_docs)]
 // `!(x > 0.0)` is deliberate throughout: a NaN must fail every validity check.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
