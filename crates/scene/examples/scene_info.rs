@@ -13,13 +13,17 @@ fn main() {
         .position(|a| a == "--vertices")
         .and_then(|i| args.get(i + 1)?.parse().ok())
         .unwrap_or(0);
-    let loaded = match scene::load_file(std::path::Path::new(path)) {
+    let start = std::time::Instant::now();
+    let result = scene::load_file(std::path::Path::new(path));
+    let elapsed = start.elapsed();
+    let loaded = match result {
         Ok(l) => l,
         Err(e) => {
             eprintln!("error: {e}");
             std::process::exit(1);
         }
     };
+    println!("load_time_ms: {:.2}", elapsed.as_secs_f64() * 1e3);
     let s = &loaded.scene;
     println!(
         "features: {}",

@@ -11,6 +11,9 @@ use crate::{AssetSource, SceneError};
 /// Maximum `<include>` nesting (guards against include cycles).
 pub const MAX_INCLUDE_DEPTH: usize = 16;
 
+/// Maximum element nesting (real scenes use < 10; bounds recursion on hostile input).
+pub const MAX_DEPTH: usize = 64;
+
 /// One XML element.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Node {
@@ -107,7 +110,16 @@ pub fn parse(src: &str, file: &str) -> Result<Node, SceneError> {
         })?;
         let mut finished: Option<Node> = None;
         match event {
-            Event::Start(e) => stack.push(element(&e, src, pos, file)?),
+            Event::Start(e) => {
+                if stack.len() >= MAX_DEPTH {
+                    return Err(SceneError::Xml {
+                        file: file.to_string(),
+                        line: line_of(src, pos),
+                        message: format!("elements nested more than {MAX_DEPTH} deep"),
+                    });
+                }
+                stack.push(element(&e, src, pos, file)?)
+            }
             Event::Empty(e) => finished = Some(element(&e, src, pos, file)?),
             Event::End(_) => finished = stack.pop(),
             Event::Text(t) => {
@@ -287,6 +299,13 @@ mod tests {
         assert!(e.contains("bad.xml") && e.contains("line"), "{e}");
         assert!(parse("", "e.xml").is_err());
         assert!(parse("<scene>\n<shape>", "u.xml").is_err());
+    }
+
+    #[test]
+    fn deep_nesting_is_refused() {
+        let src = "<a>".repeat(100_000);
+        let e = parse(&src, "deep.xml").unwrap_err().to_string();
+        assert!(e.contains("nested more than"), "{e}");
     }
 
     #[test]
