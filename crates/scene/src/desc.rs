@@ -5,8 +5,9 @@
 //! through an [`crate::AssetSource`]. The Mitsuba 3 XML importer produces a `SceneDesc` too, so
 //! both formats share one loader and one validator.
 //!
-//! Every type here is documented with its fields, defaults and a JSON snippet; the
-//! complete format with one example per feature is in `scenes/README.md`.
+//! Every type here is documented with its fields, defaults and a JSON snippet per feature
+//! (each snippet is parsed by `tests/native_json.rs`); the shipped example scenes are in
+//! `scenes/` with their README.
 //!
 //! ```json
 //! {

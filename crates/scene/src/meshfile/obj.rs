@@ -3,7 +3,7 @@
 //! Contract: returns a [`RawMesh`] in which a vertex is a unique (position, uv, normal) index
 //! triple, as Mitsuba builds it; texture `v` is flipped (`1 − v`) as Mitsuba's `obj` does by
 //! default; polygons are triangulated as fans around their first vertex. Normals are kept only if
-//! *every* face vertex has one; uvs if any has one (the others get (0, 0), as in Mitsuba). Errors name the file and line. Statements other than
+//! *every* face vertex has one; uvs if any has one (like Mitsuba; the others get (0, 0), where Mitsuba leaves them uninitialised). Errors name the file and line. Statements other than
 //! `v`, `vt`, `vn`, `f` (groups, materials, smoothing, lines, points) are ignored.
 
 use std::collections::HashMap;
@@ -152,7 +152,7 @@ pub fn parse(file: &str, bytes: &[u8]) -> Result<RawMesh, SceneError> {
         });
     }
     let positions = keys.iter().map(|k| v[k.0]).collect();
-    // As Mitsuba: uvs are kept if any face vertex has one; the others get (0, 0).
+    // Like Mitsuba, uvs are kept if any face vertex has one; the others get (0, 0).
     let uvs = any_uv.then(|| {
         keys.iter()
             .map(|k| k.1.map_or(Vec2::ZERO, |t| vt[t]))
