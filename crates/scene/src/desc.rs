@@ -1,7 +1,7 @@
 //! The native scene format: a JSON document (serde) that *describes* a scene.
 //!
 //! A [`SceneDesc`] refers to asset files (meshes, textures, env maps) by relative name; it is
-//! turned into a renderable [`crate::Scene`] by [`crate::load`], which resolves those names
+//! turned into a renderable [`crate::Scene`] by [`crate::load()`], which resolves those names
 //! through an [`crate::AssetSource`]. The Mitsuba 3 XML importer produces a `SceneDesc` too, so
 //! both formats share one loader and one validator.
 //!
@@ -477,7 +477,7 @@ pub struct AreaEmitterDesc {
 /// | `obj` / `ply` | `filename`, `face_normals` (false: use the file's vertex normals, or compute smooth angle-weighted ones when the file has none, as Mitsuba does) |
 /// | `rectangle` | — the square [−1,1]² in the z = 0 plane, normal +Z |
 /// | `cube` | — the cube [−1,1]³ as 12 triangles |
-/// | `sphere` | `center` ([0,0,0]), `radius` (1); analytic, intersected exactly |
+/// | `sphere` | `center` (`[0, 0, 0]`), `radius` (1); analytic, intersected exactly |
 /// | `mesh` | `positions`, `indices`, optional `normals`, `uvs` — geometry written inline |
 ///
 /// ```json
@@ -628,7 +628,7 @@ pub enum GeometryDesc {
         #[serde(default)]
         face_normals: bool,
     },
-    /// The square [−1,1]² at z = 0, facing +Z, with uv in [0,1]².
+    /// The square `[−1, 1]²` at z = 0, facing +Z, with uv in `[0, 1]²`.
     Rectangle,
     /// The cube [−1,1]³ (12 triangles, outward faces).
     Cube,

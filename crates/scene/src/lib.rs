@@ -1,7 +1,7 @@
 //! Scene description for cvfarm.
 //!
 //! Data flows one way: a scene file (native JSON [`desc::SceneDesc`] or Mitsuba 3 XML, which
-//! [`mitsuba`] imports into a `SceneDesc`) is loaded by [`load`] into a validated [`Scene`]
+//! [`mitsuba`] imports into a `SceneDesc`) is loaded by [`load()`] into a validated [`Scene`]
 //! (assets read through an [`AssetSource`], transforms applied, references resolved), and
 //! [`Features`] summarises which effects the scene calls for so that the renderer builds only
 //! those.

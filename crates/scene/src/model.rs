@@ -1,7 +1,7 @@
 //! The loaded, validated scene the renderer consumes: every asset read, every transform
 //! applied (geometry is in world space), every reference resolved to an index.
 //!
-//! Contract: a [`Scene`] returned by [`crate::load`] has only finite numbers, non-degenerate
+//! Contract: a [`Scene`] returned by [`crate::load()`] has only finite numbers, non-degenerate
 //! camera and film, triangles with non-zero area, emitters with positive area and radiance
 //! ≥ 0, valid indices everywhere. The renderer may rely on that and does not re-check.
 
