@@ -332,6 +332,7 @@ fn schur_equals_dense_on_random_systems() {
         (10, 3, 500, 4),
         (200, 3, 5000, 5),
         (1000, 3, 20_000, 6),
+        (2000, 3, 40_000, 8),
         (50, 8, 3000, 7),
     ] {
         for color in [ColorMode::Rgb, ColorMode::Mono] {
@@ -346,6 +347,20 @@ fn schur_equals_dense_on_random_systems() {
             assert!((cs - cd).abs() <= 1e-6 * cd, "condition {cs} vs {cd}");
         }
     }
+}
+
+/// The full-size dense oracle: a 10 003² matrix (800 MB, minutes of Cholesky). Run with
+/// `cargo nextest run -p estimators --run-ignored only schur_equals_dense_at_ten_thousand`.
+#[test]
+#[ignore = "800 MB dense oracle, minutes of runtime"]
+fn schur_equals_dense_at_ten_thousand_partitions() {
+    let policy = SolvePolicy::default();
+    let acc = random_cell(10_000, 3, 100_000, 99, ColorMode::Rgb);
+    let (s, d) = (solve(&acc, &policy), solve_dense(&acc, &policy));
+    assert_eq!(d.diagnostics().status, SolveStatus::Solved);
+    let r = max_rel_diff(&s, &d, acc.layout());
+    eprintln!("P = 10 000, K = 3: max relative difference {r:e}");
+    assert!(r < 1e-9, "relative difference {r}");
 }
 
 #[test]
