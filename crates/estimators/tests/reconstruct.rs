@@ -285,3 +285,90 @@ fn surrogate_denoiser_reduces_relative_error_and_keeps_mean() {
     };
     assert!(spread(&pre) < spread(&sample_var));
 }
+
+/// Half buffer of `n` exponential samples per pixel (mean G, variance G², skewed so that
+/// the sample variance correlates with the sample mean), with its sample variance of the
+/// mean, plus noisy differences of known variance.
+fn exp_half(g: &[f32], w: usize, h: usize, n: usize, rng: &mut Pcg64) -> Owned {
+    let np = w * h;
+    let mut o = Owned {
+        w,
+        h,
+        f: vec![0.0; 3 * np],
+        fv: vec![0.0; np],
+        x: vec![0.0; 3 * np],
+        xv: vec![0.01; np],
+        y: vec![0.0; 3 * np],
+        yv: vec![0.01; np],
+    };
+    for s in 0..np {
+        let mut var = 0.0;
+        for c in 0..3 {
+            let xs: Vec<f32> = (0..n)
+                .map(|_| -g[3 * s + c] * rng.random::<f32>().max(1e-7).ln())
+                .collect();
+            let m = xs.iter().sum::<f32>() / n as f32;
+            let sv = xs.iter().map(|x| (x - m).powi(2)).sum::<f32>() / (n as f32 - 1.0);
+            o.f[3 * s + c] = m;
+            var += sv / n as f32 / 3.0;
+        }
+        o.fv[s] = var;
+        for c in 0..3 {
+            let noise = |rng: &mut Pcg64| 0.1 * (rng.random::<f32>() - 0.5) * 12f32.sqrt();
+            if s % w + 1 < w {
+                o.x[3 * s + c] = g[3 * (s + 1) + c] - g[3 * s + c] + noise(rng);
+            }
+            if s / w + 1 < h {
+                o.y[3 * s + c] = g[3 * (s + w) + c] - g[3 * s + c] + noise(rng);
+            }
+        }
+    }
+    o
+}
+
+#[test]
+fn cross_weighting_removes_the_bias_of_self_weighted_reconstruction() {
+    // [Rou §5.5, Fig. 7]: weights computed from the data's own sample variances bias the
+    // result (high samples come with high variances and get low weights); weighting each
+    // half with the other half's statistics is unbiased.
+    let (w, h) = (12, 10);
+    let g = ground_truth(w, h);
+    let mut rng = Pcg64::seed_from_u64(21);
+    let opts = WeightedOptions {
+        iterations: 20,
+        ..WeightedOptions::default()
+    };
+    let rel_err = |u: &[f32]| {
+        u.iter()
+            .zip(&g)
+            .map(|(a, b)| f64::from((a - b) / b))
+            .sum::<f64>()
+            / u.len() as f64
+    };
+    let (mut cross, mut own) = (Vec::new(), Vec::new());
+    for _ in 0..1000 {
+        let a = exp_half(&g, w, h, 4, &mut rng);
+        let b = exp_half(&g, w, h, 4, &mut rng);
+        cross.push(rel_err(
+            &weighted_iterated_cross(&a.view(), &b.view(), &opts).unwrap(),
+        ));
+        own.push(rel_err(
+            &weighted_iterated(&a.view(), &a.view(), &opts).unwrap(),
+        ));
+    }
+    let stats = |v: &[f64]| {
+        let n = v.len() as f64;
+        let m = v.iter().sum::<f64>() / n;
+        (
+            m,
+            (v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0) / n).sqrt(),
+        )
+    };
+    let ((mc, sc), (mo, so)) = (stats(&cross), stats(&own));
+    eprintln!("relative bias: cross {mc:.4} ± {sc:.4}, self-weighted {mo:.4} ± {so:.4}");
+    assert!(mc.abs() < 4.5 * sc, "cross-weighted bias {mc} (se {sc})");
+    assert!(
+        mo < -4.5 * so,
+        "self-weighted reconstruction should be biased low: {mo} (se {so})"
+    );
+}
