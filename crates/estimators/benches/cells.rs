@@ -123,5 +123,24 @@ fn accumulate_and_merge(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, solves, accumulate_and_merge);
+fn ocv(c: &mut Criterion) {
+    use estimators::ocv::{OcvOptions, ocv_estimate};
+    let mut g = c.benchmark_group("ocv_estimate_n64");
+    let mut rng = Pcg64::seed_from_u64(4);
+    for m in [2usize, 3, 5, 9] {
+        let values: Vec<[f64; 3]> = (0..64)
+            .map(|_| [rng.random(), rng.random(), rng.random()])
+            .collect();
+        let pdfs: Vec<f64> = (0..64 * m).map(|_| rng.random::<f64>() + 0.01).collect();
+        let mixture = vec![1.0 / m as f64; m];
+        g.bench_function(BenchmarkId::from_parameter(m), |b| {
+            b.iter(|| {
+                ocv_estimate(black_box(&values), &pdfs, &mixture, &OcvOptions::default()).unwrap()
+            })
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(benches, solves, accumulate_and_merge, ocv);
 criterion_main!(benches);
