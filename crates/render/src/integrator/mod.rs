@@ -115,6 +115,12 @@ impl RenderSettings {
 
     /// Checks the settings.
     pub fn validate(&self) -> Result<(), RenderError> {
+        if self.spp == 0 {
+            return Err(RenderError::InvalidSetting {
+                field: "spp",
+                reason: "must be ≥ 1",
+            });
+        }
         if self.max_depth < -1 || self.max_depth == 0 {
             return Err(RenderError::InvalidSetting {
                 field: "max_depth",

@@ -286,7 +286,11 @@ pub fn sample_pixel(
     y: u32,
     sample_index: u32,
 ) -> PathSample {
-    let mut sampler = Sampler::new(st.seed, y * rs.width + x, sample_index);
+    let mut sampler = Sampler::new(
+        st.seed,
+        y.wrapping_mul(rs.width).wrapping_add(x),
+        sample_index,
+    );
     let u = sampler.next_2d();
     let ray = rs.camera.ray(Vec2::new(x as f32 + u.x, y as f32 + u.y));
     trace(rs, st, ray, &mut sampler, &mut super::NoObserver)
