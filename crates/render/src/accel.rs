@@ -21,6 +21,9 @@
 //!   `(1 + max|p|)·ε_ray`, `ε_ray = 1500·2⁻²⁴`, on the side the new ray leaves to; shadow rays
 //!   end `ε_shadow = 10·ε_ray` (relative) short of their target. Scale-aware, so the Cornell box
 //!   in millimetres works as well as a unit scene.
+//! - Limitation inherited from obvhs 0.4: its node test clamps the entry distance to an
+//!   absolute `1e-4`, so geometry lying entirely within `1e-4` scene units of a ray origin is
+//!   not found (irrelevant at the offsets above for scenes in metres or millimetres).
 
 use std::f32::consts::PI;
 use std::time::Duration;
