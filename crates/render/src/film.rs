@@ -80,6 +80,13 @@ impl Pixel {
     }
 }
 
+/// f64 → f32 for output, saturating at ±`f32::MAX` so that finite accumulators (e.g. the
+/// variance of samples near the top of the f32 range) never become ∞ in an image.
+#[inline]
+fn saturate(v: f64) -> f32 {
+    v.clamp(-f64::from(f32::MAX), f64::from(f32::MAX)) as f32
+}
+
 /// A named RGB layer for image output (`beauty`, `variance`, `albedo`, `normal`).
 #[derive(Clone, Debug, PartialEq)]
 pub struct FilmLayer {
@@ -160,17 +167,14 @@ impl Film {
 
     /// Mean image (row-major RGB, f32).
     pub fn mean_image(&self) -> Vec<[f32; 3]> {
-        self.pixels
-            .iter()
-            .map(|p| p.mean().map(|v| v as f32))
-            .collect()
+        self.pixels.iter().map(|p| p.mean().map(saturate)).collect()
     }
 
     /// Per-pixel variance of the mean.
     pub fn variance_image(&self) -> Vec<[f32; 3]> {
         self.pixels
             .iter()
-            .map(|p| p.variance_of_mean().map(|v| v as f32))
+            .map(|p| p.variance_of_mean().map(saturate))
             .collect()
     }
 
@@ -178,7 +182,7 @@ impl Film {
     pub fn albedo_image(&self) -> Vec<[f32; 3]> {
         self.pixels
             .iter()
-            .map(|p| p.albedo_sum.map(|v| (v / p.count.max(1) as f64) as f32))
+            .map(|p| p.albedo_sum.map(|v| saturate(v / p.count.max(1) as f64)))
             .collect()
     }
 
@@ -186,7 +190,7 @@ impl Film {
     pub fn normal_image(&self) -> Vec<[f32; 3]> {
         self.pixels
             .iter()
-            .map(|p| p.normal_sum.map(|v| (v / p.count.max(1) as f64) as f32))
+            .map(|p| p.normal_sum.map(|v| saturate(v / p.count.max(1) as f64)))
             .collect()
     }
 

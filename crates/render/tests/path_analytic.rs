@@ -396,3 +396,40 @@ fn vertex_records_reconstruct_the_path_estimate() {
         assert!(vertices > 512, "multi-vertex paths expected ({vertices})");
     }
 }
+
+#[test]
+fn non_finite_samples_are_rejected_and_counted() {
+    // A large emitter at the top of the f32 range: NEE contributions (∝ L·A/d²) overflow to
+    // ∞ and are rejected (counted, replaced by 0) — the film stays finite.
+    let mut s = empty_scene(
+        look_at(Vec3::new(0.0, 0.5, 0.0), Vec3::ZERO, Vec3::Z),
+        40.0,
+        4,
+        4,
+    );
+    let grey = add_material(&mut s, diffuse(Vec3::splat(0.9), false));
+    s.meshes.push(quad(
+        Vec3::ZERO,
+        Vec3::new(0.0, 0.0, 5.0),
+        Vec3::new(5.0, 0.0, 0.0),
+        grey,
+        None,
+    ));
+    s.meshes.push(quad(
+        Vec3::new(0.0, 1.0, 0.0),
+        Vec3::new(5.0, 0.0, 0.0),
+        Vec3::new(0.0, 0.0, 5.0),
+        grey,
+        Some(Vec3::splat(3.0e38)),
+    ));
+    let film = render(&s, 4, 1, 3);
+    assert!(film.rejected > 0, "overflowing samples must be counted");
+    assert_eq!(film.sample_count(), 4 * 16);
+    assert!(film.mean_image().iter().flatten().all(|v| v.is_finite()));
+    assert!(
+        film.variance_image()
+            .iter()
+            .flatten()
+            .all(|v| v.is_finite())
+    );
+}
