@@ -49,8 +49,19 @@ pub async fn pass(state: &AppState) -> Result<(), StoreError> {
         state.work_available.notify_waiters();
     }
     for job_id in store.finishable_jobs().await? {
-        if let Err(e) = crate::finish::finish_job(state, job_id).await {
-            tracing::error!(job = job_id, error = %e, "finishing failed");
+        match crate::finish::finish_job(state, job_id).await {
+            Ok(_) => {}
+            // Stored results that cannot be assembled will not get better: fail the job
+            // instead of retrying forever. Store errors are transient: retry next pass.
+            Err(
+                e @ (crate::finish::FinishError::Corrupt(_) | crate::finish::FinishError::Image(_)),
+            ) => {
+                tracing::error!(job = job_id, error = %e, "finishing failed; failing the job");
+                store
+                    .end_job(job_id, JobState::Failed, Some(&e.to_string()))
+                    .await?;
+            }
+            Err(e) => tracing::warn!(job = job_id, error = %e, "finishing failed; will retry"),
         }
     }
     Ok(())

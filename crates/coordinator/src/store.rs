@@ -55,6 +55,22 @@ pub fn now_ms() -> i64 {
         .unwrap_or(0)
 }
 
+/// Rewrites `?` placeholders to PostgreSQL's `$1, $2, …` (our SQL has no `?` in literals).
+pub fn dollar_placeholders(s: &str) -> String {
+    let mut out = String::with_capacity(s.len() + 16);
+    let mut n = 0;
+    for ch in s.chars() {
+        if ch == '?' {
+            n += 1;
+            out.push('$');
+            out.push_str(&n.to_string());
+        } else {
+            out.push(ch);
+        }
+    }
+    out
+}
+
 /// A connection pool plus the backend it talks to.
 #[derive(Clone, Debug)]
 pub struct Store {
@@ -274,24 +290,11 @@ impl Store {
         self.pool.close().await;
     }
 
-    /// Rewrites `?` placeholders to `$1, $2, …` for PostgreSQL.
+    /// The SQL for this backend (see [`dollar_placeholders`]).
     fn sql(&self, s: &str) -> String {
         match self.backend {
             Backend::Sqlite => s.to_owned(),
-            Backend::Postgres => {
-                let mut out = String::with_capacity(s.len() + 16);
-                let mut n = 0;
-                for ch in s.chars() {
-                    if ch == '?' {
-                        n += 1;
-                        out.push('$');
-                        out.push_str(&n.to_string());
-                    } else {
-                        out.push(ch);
-                    }
-                }
-                out
-            }
+            Backend::Postgres => dollar_placeholders(s),
         }
     }
 
@@ -818,5 +821,27 @@ impl Store {
             .fetch_one(&self.pool)
             .await?
             .try_get("n")?)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn placeholders_are_numbered_in_order() {
+        assert_eq!(dollar_placeholders("SELECT 1"), "SELECT 1");
+        assert_eq!(
+            dollar_placeholders(
+                "UPDATE t SET a = ?, b = ? WHERE id = ? AND x IN (?, ?, ?, ?, ?, ?, ?, ?)"
+            ),
+            "UPDATE t SET a = $1, b = $2 WHERE id = $3 AND x IN ($4, $5, $6, $7, $8, $9, $10, $11)"
+        );
+    }
+
+    #[tokio::test]
+    async fn unknown_url_scheme_is_an_error() {
+        let e = Store::connect("mysql://x").await.unwrap_err();
+        assert!(matches!(e, StoreError::BadUrl(_)), "{e}");
     }
 }

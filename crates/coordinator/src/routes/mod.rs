@@ -65,3 +65,34 @@ pub fn parse_json<T: serde::de::DeserializeOwned>(body: &[u8]) -> Result<T, AppE
         }
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn json_errors_are_classified_and_name_the_field() {
+        #[derive(Debug, serde::Deserialize)]
+        #[serde(deny_unknown_fields)]
+        #[allow(dead_code)]
+        struct S {
+            a: u32,
+        }
+        let e = parse_json::<S>(b"{").unwrap_err();
+        assert!(
+            matches!(e, AppError::BadRequest(ref x) if x.code == "invalid_json"),
+            "{e:?}"
+        );
+        let e = parse_json::<S>(br#"{"a": 1, "zz": 2}"#).unwrap_err();
+        match e {
+            AppError::Unprocessable(x) => {
+                assert_eq!(x.code, "invalid_spec");
+                assert_eq!(x.field.as_deref(), Some("zz"));
+            }
+            other => panic!("{other:?}"),
+        }
+        let e = parse_json::<S>(br#"{"a": "x"}"#).unwrap_err();
+        assert!(matches!(e, AppError::Unprocessable(_)), "{e:?}");
+        assert_eq!(parse_json::<S>(br#"{"a": 3}"#).unwrap().a, 3);
+    }
+}
