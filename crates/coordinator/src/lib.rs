@@ -14,7 +14,8 @@
 //! - [`store`]: the sqlx store over SQLite/PostgreSQL (`sqlx::Any`), all queries.
 //! - [`auth`]: bearer tokens for clients and workers.
 //! - [`error`]: [`error::AppError`] → HTTP status + JSON error body.
-//! - [`routes`]: one module per resource (`jobs`, `assets`, `workers`, `tasks`, `health`).
+//! - [`routes`]: one module per resource (`jobs`, `assets`, `workers`, `tasks`, `health`,
+//!   `meta`: metrics, OpenAPI, docs).
 //! - [`finish`]: phase completion: image assembly in canonical order, EXR/PNG/stats outputs.
 //! - [`reaper`]: background loop expiring leases and finishing complete jobs.
 

@@ -126,6 +126,21 @@ pub struct NewJob<'a> {
     pub plan: &'a [TaskPlan],
 }
 
+/// Store-wide counts for `/metrics`.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Metrics {
+    /// (state, count) of jobs.
+    pub jobs: Vec<(String, i64)>,
+    /// (state, count) of tasks.
+    pub tasks: Vec<(String, i64)>,
+    /// Registered workers.
+    pub workers: i64,
+    /// Σ attempts over tasks.
+    pub attempts: i64,
+    /// Σ failed attempts over tasks.
+    pub failures: i64,
+}
+
 /// A task as leased.
 #[derive(Clone, Debug)]
 pub struct LeasedTask {
@@ -809,6 +824,35 @@ impl Store {
             .await?;
         tx.commit().await?;
         Ok(UploadOutcome::Accepted)
+    }
+
+    /// Counts for `/metrics`.
+    pub async fn metrics(&self) -> Result<Metrics> {
+        let mut m = Metrics::default();
+        for r in sqlx::query("SELECT state, COUNT(*) AS n FROM jobs GROUP BY state ORDER BY state")
+            .fetch_all(&self.pool)
+            .await?
+        {
+            m.jobs.push((r.try_get("state")?, r.try_get("n")?));
+        }
+        for r in sqlx::query("SELECT state, COUNT(*) AS n FROM tasks GROUP BY state ORDER BY state")
+            .fetch_all(&self.pool)
+            .await?
+        {
+            m.tasks.push((r.try_get("state")?, r.try_get("n")?));
+        }
+        let r = sqlx::query(
+            "SELECT CAST(COALESCE(SUM(attempt), 0) AS BIGINT) AS a, CAST(COALESCE(SUM(failures), 0) AS BIGINT) AS f FROM tasks",
+        )
+        .fetch_one(&self.pool)
+        .await?;
+        m.attempts = r.try_get("a")?;
+        m.failures = r.try_get("f")?;
+        m.workers = sqlx::query("SELECT COUNT(*) AS n FROM workers")
+            .fetch_one(&self.pool)
+            .await?
+            .try_get("n")?;
+        Ok(m)
     }
 
     /// Number of result rows stored for a job (tests: nothing rendered twice is stored twice).

@@ -4,6 +4,7 @@
 //! | method | path | who | what |
 //! |---|---|---|---|
 //! | GET | `/healthz` | anyone | store reachable |
+//! | GET | `/metrics`, `/openapi.json`, `/docs` | anyone | Prometheus metrics, OpenAPI document, HTML docs |
 //! | POST | `/v1/jobs` | client | submit a [`protocol::JobSpec`] |
 //! | GET | `/v1/jobs`, `/v1/jobs/{id}` | client | list / status |
 //! | POST | `/v1/jobs/{id}/cancel` | client | cancel |
@@ -19,6 +20,7 @@
 pub mod assets;
 pub mod health;
 pub mod jobs;
+pub mod meta;
 pub mod tasks;
 pub mod workers;
 
@@ -35,6 +37,7 @@ pub fn router(state: Arc<AppState>) -> Router {
     let json_limit = state.config.max_json_body;
     Router::new()
         .merge(health::router())
+        .merge(meta::router())
         .merge(jobs::router())
         .merge(assets::router(state.config.max_asset_body))
         .merge(workers::router())
