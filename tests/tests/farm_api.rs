@@ -144,6 +144,7 @@ fn bad_input_is_4xx_json_naming_the_problem() {
     let db = TestDb::new(Backend::Sqlite);
     let mut cfg = db.config();
     cfg.max_json_body = 64 << 10;
+    cfg.max_result_body = 32 << 10;
     let coord = Coordinator::start(cfg);
     let url = coord.url();
     let client = Client::new(&url);
@@ -334,6 +335,8 @@ fn bad_input_is_4xx_json_naming_the_problem() {
         Some(full.clone()),
     );
     check(r, 400, "invalid_query", "attempt");
+    let r = fw.upload(l.task_id, l.attempt, vec![0u8; 64 << 10]);
+    check(r, 413, "body_too_large", "limit");
     // Nothing bad was stored; the real upload still goes through.
     assert_eq!(fw.upload(l.task_id, l.attempt, full).status, 200);
 
@@ -483,4 +486,26 @@ fn retry_cap_fails_the_job_and_a_failing_worker_is_blocked_for_it() {
     assert!(y.lease().is_none());
     let r = client.request("GET", &format!("/v1/jobs/{job}/stats.json"), None);
     assert_eq!(r.status, 409);
+}
+
+#[test]
+fn health_metrics_openapi_and_docs_are_served() {
+    let db = TestDb::new(Backend::Postgres);
+    let coord = Coordinator::start(db.config());
+    let client = Client::new(&coord.url());
+    client.submit(&small_spec(1));
+    let anon = Client::with_token(&coord.url(), None);
+    let r = anon.request("GET", "/healthz", None);
+    assert_eq!((r.status, r.json()["status"].as_str()), (200, Some("ok")));
+    let r = anon.request("GET", "/metrics", None);
+    assert_eq!(r.status, 200);
+    let text = String::from_utf8(r.body).expect("utf8");
+    assert!(text.contains("cvfarm_tasks{state=\"pending\"} 4"), "{text}");
+    assert!(text.contains("cvfarm_jobs{state=\"running\"} 1"), "{text}");
+    let api = anon.request("GET", "/openapi.json", None).json();
+    assert_eq!(api["openapi"], "3.1.0");
+    assert!(api["paths"]["/v1/jobs"]["post"].is_object());
+    let r = anon.request("GET", "/docs", None);
+    assert_eq!(r.status, 200);
+    assert!(String::from_utf8_lossy(&r.body).contains("/v1/workers/lease"));
 }
