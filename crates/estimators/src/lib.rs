@@ -22,6 +22,8 @@
 //!   weighted iterated CV, screened Poisson L2 and weighted L2 [Rou §5].
 //! - [`filter`]: NL-means prefiltering of variances [Rou §4.1] and the surrogate denoiser
 //!   for relative-variance training [Hua §4.2.1].
+//! - [`denoise`]: edge-aware à-trous wavelet denoiser (albedo/normal/variance guided) for
+//!   the surrogate image of relative-variance training [Hua §4.2.1].
 //! - [`metrics`]: relMSE, MSE, efficiency and speedup (DESIGN §6).
 //! - [`perceptual`]: Fan's perceptual error with the tvi function [Fan eq. 12].
 
@@ -55,6 +57,7 @@
 
 pub mod cell;
 pub mod composite;
+pub mod denoise;
 pub mod filter;
 pub mod metrics;
 pub mod mis;

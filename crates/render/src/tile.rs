@@ -129,6 +129,11 @@ pub fn render_tile_counted(
             for s in samples.clone() {
                 let sample = match st.estimator {
                     Estimator::Path => path::sample_pixel(rs, st, x, y, s),
+                    // Phased CV estimators need their coefficients (see
+                    // `cv::render_estimator_image`); a bare tile renders the baseline.
+                    Estimator::Cms(_) | Estimator::PerLightCv(_) | Estimator::OptimalMis(_) => {
+                        path::sample_pixel(rs, st, x, y, s)
+                    }
                 };
                 rays += u64::from(sample.rays);
                 if sample.radiance.is_finite() {
@@ -155,6 +160,11 @@ pub fn render_image(
     options: &RenderOptions,
     progress: &(dyn Fn(u64, u64) + Sync),
 ) -> Result<(Film, RenderStats), RenderError> {
+    if st.estimator.has_phases() {
+        // All phases in-process (surrogate, train, solve, render).
+        return crate::integrator::cv::render_estimator_image(rs, st, options, progress)
+            .map(|(film, stats, _)| (film, stats));
+    }
     let start = Instant::now();
     let tiles = TileRect::grid(rs.width, rs.height, options.tile_size);
     let total = u64::from(rs.width) * u64::from(rs.height) * u64::from(st.spp);

@@ -6,6 +6,12 @@
 //! | `estimator.kind` | file | what |
 //! |---|---|---|
 //! | `path` | `path.rs` | reference unidirectional path tracer: NEE + BSDF sampling with MIS (Mitsuba 3 `path`) |
+//! | `cms` | `cms.rs` | controlled mixture sampling: per-cell optimal CV at every vertex [Hua 2023] |
+//! | `per_light_cv` | `per_light_cv.rs` | per-cell mean per-light NEE contribution as CV (Vévoda 2018) [Hua §7.2] |
+//! | `optimal_mis` | `optimal_mis.rs` | the CMS system per pixel for direct illumination (Kondapaneni 2019) [Hua §7.4] |
+//!
+//! `cms`, `per_light_cv` and `optimal_mis` share `cv.rs` (grid, components, phases); their
+//! entry point (which also renders every other estimator) is [`cv::render_estimator_image`].
 //!
 //! The CV estimators (DESIGN §4) plug in at the path vertex: [`path::trace`] reports every
 //! vertex as a [`VertexRecord`] carrying both techniques' samples with **every technique's
@@ -29,7 +35,11 @@
 //! { "spp": 256, "seed": 7, "max_depth": 5, "rr_depth": 6, "mis": "power" }
 //! ```
 
+pub mod cms;
+pub mod cv;
+pub mod optimal_mis;
 pub mod path;
+pub mod per_light_cv;
 
 use glam::Vec3;
 use thiserror::Error;
@@ -40,11 +50,32 @@ use crate::camera::Camera;
 use crate::light::{LightSelection, Lights};
 
 /// The estimator a job renders with (closed set; dispatched with `match`).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+///
+/// JSON: internally tagged by `kind`, the variant's options beside it, e.g.
+/// `{ "kind": "path" }`, `{ "kind": "cms", "relative": true }`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
 pub enum Estimator {
     /// The reference NEE + BSDF MIS path tracer.
     #[default]
     Path,
+    /// Controlled mixture sampling [Hua 2023] (see [`cms`]).
+    Cms(cms::CmsOptions),
+    /// Vévoda-style per-light CV [Hua §7.2] (see [`per_light_cv`]).
+    PerLightCv(per_light_cv::PerLightCvOptions),
+    /// Optimal MIS per pixel for direct illumination [Hua §7.4] (see [`optimal_mis`]).
+    OptimalMis(optimal_mis::OptimalMisOptions),
+}
+
+impl Estimator {
+    /// Whether the estimator runs phases (surrogate/train/solve/render) and must be rendered
+    /// with [`cv::render_estimator_image`] (a bare tile renders its plain, `α ≡ 0` form).
+    pub fn has_phases(&self) -> bool {
+        matches!(
+            self,
+            Estimator::Cms(_) | Estimator::PerLightCv(_) | Estimator::OptimalMis(_)
+        )
+    }
 }
 
 /// MIS heuristic combining light and BSDF sampling.
@@ -297,6 +328,11 @@ pub struct LightTechnique {
     pub pdf_bsdf: f32,
     /// `f·|cos θ|·Le·V` (not divided by any pdf, not MIS-weighted); zero if occluded.
     pub value: Vec3,
+    /// Whether the shadow ray was traced and found the sampled point unoccluded (false when
+    /// occluded or not traced; an observer with [`VertexObserver::CONTROLS_DIRECT`] gets the
+    /// shadow ray traced whenever `pdf_bsdf > 0`, so that the BSDF technique's density of
+    /// the sampled *point* — zero behind an occluder — is known).
+    pub visible: bool,
 }
 
 /// The BSDF-sampled direction at a vertex and what it found.
@@ -312,6 +348,9 @@ pub struct BsdfTechnique {
     pub weight: Vec3,
     /// Radiance emitted towards the vertex by what `wi` hit (0 if nothing emits).
     pub emitted: Vec3,
+    /// The emitter `wi` reached (area light hit, or the environment light when the ray
+    /// escaped), whatever its emission towards the vertex; `None` if not traced.
+    pub hit_light: Option<u32>,
     /// Whether a delta lobe produced `wi`.
     pub delta: bool,
     /// Whether the continuation ray was traced (false when Russian roulette ended the path
@@ -335,15 +374,35 @@ pub struct VertexRecord {
     pub throughput: Vec3,
     /// The NEE sample, if one was drawn (non-delta BSDF, lights present, sample valid).
     pub light: Option<LightTechnique>,
+    /// The light NEE selected, also when sampling it then failed (`light` is `None`);
+    /// `None` when NEE did not run (delta BSDF or no lights).
+    pub nee_light: Option<u32>,
     /// The BSDF sample, if valid (when the path continues, it continues along it).
     pub bsdf: Option<BsdfTechnique>,
 }
 
 /// Receives every path vertex (static dispatch).
 pub trait VertexObserver {
+    /// When `true` the observer *owns* the direct lighting of scattering vertices:
+    /// [`path::trace`] adds neither the NEE contribution nor the emission found by the BSDF
+    /// sample, but the value [`controlled_vertex`](Self::controlled_vertex) returns; it also
+    /// traces zero-weight BSDF samples (then stops) and shadow rays of zero-valued NEE
+    /// samples with `pdf_bsdf > 0`, so every technique's pdf is known for every sample
+    /// [Hua §8]. With `false` (the default) `trace` is exactly the `path` estimator.
+    const CONTROLS_DIRECT: bool = false;
+
     /// Called once per scattering vertex after both techniques were evaluated.
     #[inline]
     fn vertex(&mut self, _record: &VertexRecord) {}
+
+    /// Called instead of [`vertex`](Self::vertex) when
+    /// [`CONTROLS_DIRECT`](Self::CONTROLS_DIRECT) is set: returns the vertex's
+    /// direct-lighting contribution *including* the prefix throughput `record.throughput`.
+    #[inline]
+    fn controlled_vertex(&mut self, record: &VertexRecord) -> Vec3 {
+        self.vertex(record);
+        Vec3::ZERO
+    }
 }
 
 /// The observer of the plain `path` estimator: ignores vertices.

@@ -136,17 +136,28 @@ pub fn trace<O: VertexObserver>(
 
         // ---- emitter sampling (NEE) ----
         let mut light_tech = None;
-        if !bsdf.is_delta()
-            && !lights.is_empty()
-            && let Some(ls) = lights.sample(h.p, u_select, u_light)
-            && ls.pdf > 0.0
+        // Selection then sampling, exactly as `Lights::sample`, keeping the selected light
+        // for observers when the sample fails.
+        let nee_sel = if !bsdf.is_delta() && !lights.is_empty() {
+            lights.select(u_select)
+        } else {
+            None
+        };
+        if let Some((sel_light, sel_pmf)) = nee_sel
+            && let Some(mut ls) = lights.sample_light(sel_light, h.p, u_light)
+            && {
+                ls.pdf *= sel_pmf;
+                ls.pdf > 0.0
+            }
             && ls.pdf.is_finite()
         {
             let wi_local = frame.to_local(ls.wi);
             let f = bsdf.eval(wo, wi_local);
             let pdf_bsdf = bsdf.pdf(wo, wi_local);
             let mut value = Vec3::ZERO;
-            if f != Vec3::ZERO && ls.radiance != Vec3::ZERO {
+            let mut visible = false;
+            let contributes = f != Vec3::ZERO && ls.radiance != Vec3::ZERO;
+            if contributes || (O::CONTROLS_DIRECT && pdf_bsdf > 0.0) {
                 let shadow = if ls.dist.is_finite() {
                     h.spawn_ray_to(h.p + ls.wi * ls.dist)
                 } else {
@@ -154,10 +165,13 @@ pub fn trace<O: VertexObserver>(
                 };
                 out.rays += 1;
                 if !rs.accel.occluded(shadow.o, shadow.d, shadow.t_max) {
-                    value = f * ls.radiance;
+                    visible = true;
+                    if contributes {
+                        value = f * ls.radiance;
+                    }
                 }
             }
-            if value != Vec3::ZERO {
+            if !O::CONTROLS_DIRECT && value != Vec3::ZERO {
                 let w = if ls.delta {
                     1.0
                 } else {
@@ -171,19 +185,26 @@ pub fn trace<O: VertexObserver>(
                 pdf_light: ls.pdf,
                 pdf_bsdf,
                 value,
+                visible,
             });
         }
+        let nee_light = nee_sel.map(|(l, _)| l);
 
         // ---- BSDF sampling ----
         let Some(bs) = bsdf.sample(wo, u_lobe, u_bsdf) else {
-            observer.vertex(&VertexRecord {
-                depth,
-                p: h.p,
-                ns: h.ns,
-                throughput: beta,
-                light: light_tech,
-                bsdf: None,
-            });
+            report(
+                observer,
+                &mut radiance,
+                &VertexRecord {
+                    depth,
+                    p: h.p,
+                    ns: h.ns,
+                    throughput: beta,
+                    light: light_tech,
+                    nee_light,
+                    bsdf: None,
+                },
+            );
             break;
         };
         let wi = frame.to_world(bs.wi);
@@ -194,6 +215,8 @@ pub fn trace<O: VertexObserver>(
         depth += 1;
         let beta_max = beta.max_element();
         let mut alive = beta_max > 0.0 && beta.is_finite();
+        // A CV needs the pdfs of a zero-weight BSDF sample too: trace it, then stop.
+        let zero_weight_trace = O::CONTROLS_DIRECT && !alive && beta == Vec3::ZERO;
         let mut rr_q = 1.0;
         if alive && depth as i64 >= i64::from(st.rr_depth) {
             rr_q = beta_max.min(0.95);
@@ -210,19 +233,25 @@ pub fn trace<O: VertexObserver>(
             pdf_light: 0.0,
             weight: bs.weight,
             emitted: Vec3::ZERO,
+            hit_light: None,
             delta: bs.delta,
             traced: false,
             rr_q,
         };
-        if !alive {
-            observer.vertex(&VertexRecord {
-                depth: depth - 1,
-                p: h.p,
-                ns: h.ns,
-                throughput,
-                light: light_tech,
-                bsdf: Some(tech),
-            });
+        if !alive && !zero_weight_trace {
+            report(
+                observer,
+                &mut radiance,
+                &VertexRecord {
+                    depth: depth - 1,
+                    p: h.p,
+                    ns: h.ns,
+                    throughput,
+                    light: light_tech,
+                    nee_light,
+                    bsdf: Some(tech),
+                },
+            );
             break;
         }
 
@@ -234,8 +263,9 @@ pub fn trace<O: VertexObserver>(
         match &next {
             None => {
                 tech.emitted = lights.env_radiance(wi);
+                tech.hit_light = lights.env_light();
                 if !bs.delta
-                    && tech.emitted != Vec3::ZERO
+                    && (O::CONTROLS_DIRECT || tech.emitted != Vec3::ZERO)
                     && let Some(l) = lights.env_light()
                 {
                     tech.pdf_light = lights.selection_pmf(l) * lights.pdf_env(wi);
@@ -243,6 +273,7 @@ pub fn trace<O: VertexObserver>(
             }
             Some(n) => {
                 if let Some(l) = n.light {
+                    tech.hit_light = Some(l);
                     tech.emitted = lights.area_radiance(l, n.ns, -wi);
                     if !bs.delta {
                         tech.pdf_light =
@@ -251,7 +282,7 @@ pub fn trace<O: VertexObserver>(
                 }
             }
         }
-        if tech.emitted != Vec3::ZERO {
+        if !O::CONTROLS_DIRECT && tech.emitted != Vec3::ZERO {
             let w = if bs.delta {
                 1.0
             } else {
@@ -259,14 +290,22 @@ pub fn trace<O: VertexObserver>(
             };
             radiance += beta * tech.emitted * w;
         }
-        observer.vertex(&VertexRecord {
-            depth: depth - 1,
-            p: h.p,
-            ns: h.ns,
-            throughput,
-            light: light_tech,
-            bsdf: Some(tech),
-        });
+        report(
+            observer,
+            &mut radiance,
+            &VertexRecord {
+                depth: depth - 1,
+                p: h.p,
+                ns: h.ns,
+                throughput,
+                light: light_tech,
+                nee_light,
+                bsdf: Some(tech),
+            },
+        );
+        if zero_weight_trace {
+            break;
+        }
         match next {
             Some(n) => h = n,
             None => break,
@@ -274,6 +313,16 @@ pub fn trace<O: VertexObserver>(
     }
     out.radiance = radiance;
     out
+}
+
+/// Hands a vertex record to the observer; a controlling observer's contribution is added.
+#[inline]
+fn report<O: VertexObserver>(observer: &mut O, radiance: &mut Vec3, record: &VertexRecord) {
+    if O::CONTROLS_DIRECT {
+        *radiance += observer.controlled_vertex(record);
+    } else {
+        observer.vertex(record);
+    }
 }
 
 /// One sample of pixel `(x, y)`: camera ray through a uniformly sampled point of the pixel,

@@ -1,0 +1,1098 @@
+//! Shared machinery of the pdf-based CV estimators `cms`, `per_light_cv` and `optimal_mis`:
+//! CV components, the spatial grid, the vertex policy that records and modifies the
+//! direct lighting of every path vertex, and the in-process phase driver
+//! [`render_estimator_image`].
+//!
+//! # The vertex integral and its measures
+//! At a scattering vertex the direct lighting is one integral over the points `x` the two
+//! techniques can produce, estimated with one NEE sample and one BSDF sample combined by the
+//! balance heuristic [Hua eq. 6]: `F(x) = f(x)/p(x)` with the effective density
+//! `p = p_light + p_bsdf` [Hua eq. 16]. Densities are handled as densities of *points*
+//! (area measure on surfaces, solid angle towards the environment), which makes the
+//! zero-contribution samples of [Hua §8] exact without extra rays:
+//! - an NEE sample behind an occluder is a point the BSDF technique cannot reach:
+//!   `p = p_light`, `λ_bsdf = 0` (the shadow ray is traced whenever `p_bsdf > 0`);
+//! - a BSDF sample that hits a non-emitter has `λ_light = 0`, `p = p_bsdf`;
+//! - a BSDF sample that hits emitter `l` (front side) has `p = p_light(l) + p_bsdf`;
+//! - failed samples (the BSDF sampler or the light sampler returned nothing) and delta
+//!   lobes are point masses only their own technique produces: `λ/p = 1` for the BSDF
+//!   component, `1/S_C` for the cluster `C` of the selected light.
+//!
+//! Only ratios `λ_k/p` enter, so solid-angle values are used throughout. Components
+//! [Hua eq. 18]: one per light cluster `C` (`λ_C = Σ_{l∈C} c_l p_l / S_C`, `S_C = Σ_{l∈C}
+//! c_l`, `c_l` the selection pmf; the env map is its own cluster) and, for `cms` and
+//! `optimal_mis`, the BSDF (`λ_bsdf = p_bsdf`). The vertex estimate is
+//! `β (Σα + Σ_s R_s (F_s − Σ_k α_k λ_k(x_s)/p(x_s)))` [Hua eq. 17, 27] with `β` the
+//! prefix throughput and `R_s = 1/q` the Russian-roulette factor of the BSDF sample (a
+//! BSDF sample whose path roulette ended is dropped, `R = 0`, which keeps the estimator
+//! unbiased). With `α ≡ 0` this is the balance-heuristic path tracer (the fallback).
+//!
+//! # Phases and determinism
+//! surrogate (cms with `relative`) → train → solve → render, sample indices
+//! `[0, s)`, `[s, s+T)`, `[s+T, spp)` of the job's sampler, all kept in the image.
+//! Training tiles are fixed ([`TRAIN_TILE`] pixels, independent of
+//! [`RenderOptions::tile_size`]) and their cell accumulators are merged in row-major tile
+//! order; every pixel sums its samples in index order; so the same job and seed give
+//! bitwise-identical images for any thread count and tile size.
+//!
+//! # Grid
+//! `grid_resolution = [nx, ny, nz]` regular cells over the scene bounds (at most
+//! [`MAX_GRID_CELLS`]); the adaptive default gives the longest axis `max(width, height)/16`
+//! cells (clamped to 4…128) and the others proportionally.
+
+use std::collections::{BTreeMap, HashMap};
+use std::ops::Range;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Instant;
+
+use estimators::cell::{CellAccumulator, ColorMode, ComponentLayout, CvSample, training_weight};
+use estimators::perlight::{MeanContributionAccumulator, mean_contribution_coefficients};
+use estimators::solve::{CellCoefficients, SolvePolicy, SolveStatus, solve};
+use glam::{Vec2, Vec3};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::{Estimator, RenderError, RenderScene, RenderSettings, VertexObserver, VertexRecord};
+use crate::film::{Film, FilmLayer};
+use crate::light::Lights;
+use crate::sampler::Sampler;
+use crate::tile::{RenderOptions, RenderStats, TileRect};
+
+/// Fixed tile edge of the training phase (canonical accumulator merge order).
+pub const TRAIN_TILE: u32 = 16;
+/// Most grid cells a job may ask for.
+pub const MAX_GRID_CELLS: u64 = 1 << 22;
+
+/// Colour handling of the CV coefficients [Hua §4.3].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CvColor {
+    /// One coefficient per RGB channel.
+    #[default]
+    Rgb,
+    /// One coefficient for the channel mean.
+    Mono,
+}
+
+impl CvColor {
+    fn mode(self) -> ColorMode {
+        match self {
+            CvColor::Rgb => ColorMode::Rgb,
+            CvColor::Mono => ColorMode::Mono,
+        }
+    }
+}
+
+/// Seconds spent per phase.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct PhaseTimings {
+    /// Surrogate render + denoise.
+    pub surrogate: f64,
+    /// Training render with accumulation.
+    pub train: f64,
+    /// Merge + solve of all cells.
+    pub solve: f64,
+    /// Render with the CV applied.
+    pub render: f64,
+}
+
+/// What an estimator run did (serialisable; the CLI writes it into its stats).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct EstimatorReport {
+    /// `estimator.kind`.
+    pub estimator: String,
+    /// Phase wall-clock seconds.
+    pub phases: PhaseTimings,
+    /// Samples per pixel per phase.
+    pub surrogate_spp: u32,
+    /// Training samples per pixel.
+    pub training_spp: u32,
+    /// Render-phase samples per pixel.
+    pub render_spp: u32,
+    /// Grid resolution (`[0, 0, 0]` when cells are pixels or no CV).
+    pub grid_resolution: [u32; 3],
+    /// Cells that received training data.
+    pub cells: u64,
+    /// Cells whose system was solved.
+    pub cells_solved: u64,
+    /// Cells that fell back to the plain estimator, by reason.
+    pub cells_fallback: BTreeMap<String, u64>,
+    /// Training samples rejected (non-finite).
+    pub rejected_training_samples: u64,
+    /// Emitters of the scene.
+    pub lights: u32,
+    /// Partitioned CV components (lights or light clusters, env included).
+    pub light_components: u32,
+    /// Overlapping CV components (BSDF).
+    pub overlapping_components: u32,
+    /// Techniques simulated (see [`RenderScene::techniques`]) and CV components built.
+    pub effects: Vec<String>,
+    /// CV-specific seconds outside the sample loops (denoise + merge + solve).
+    pub cv_overhead_seconds: f64,
+    /// Extra EXR layers: `cv_term` (per-pixel mean of controlled − plain, so
+    /// `beauty − cv_term` is the plain estimate from the same samples) and `cell` (cell id of
+    /// the first vertex, −1 for none). Not serialised.
+    #[serde(skip)]
+    pub layers: Vec<FilmLayer>,
+}
+
+/// CV components of the lights: light → partition (cluster) and `1/S_C` per partition.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Components {
+    partition_of: Vec<u32>,
+    inv_sel_sum: Vec<f64>,
+}
+
+impl Components {
+    /// One partition per light, or at most `max_components` clusters by spatial proximity
+    /// (recursive median splits of representative light points; the env light is its own
+    /// cluster).
+    pub fn new(lights: &Lights, max_components: u32, bounds: (Vec3, Vec3)) -> Self {
+        let n = lights.len();
+        let max = max_components.max(1) as usize;
+        let mut partition_of: Vec<u32> = (0..n as u32).collect();
+        if n > max {
+            let env = lights.env_light();
+            let area: Vec<u32> = (0..n as u32).filter(|&l| Some(l) != env).collect();
+            let mut next = 0u32;
+            if let Some(e) = env {
+                partition_of[e as usize] = 0;
+                next = 1;
+            }
+            let k = (max - usize::from(env.is_some())).max(1);
+            let pts: Vec<(u32, Vec3)> = area
+                .iter()
+                .map(|&l| (l, representative_point(lights, l, bounds)))
+                .collect();
+            let mut clusters = Vec::new();
+            split_clusters(pts, k, &mut clusters);
+            for c in clusters {
+                for l in c {
+                    partition_of[l as usize] = next;
+                }
+                next += 1;
+            }
+        }
+        let parts = partition_of.iter().map(|&p| p + 1).max().unwrap_or(0) as usize;
+        let mut sel = vec![0.0f64; parts];
+        for (l, &p) in partition_of.iter().enumerate() {
+            sel[p as usize] += f64::from(lights.selection_pmf(l as u32));
+        }
+        let inv_sel_sum = sel
+            .iter()
+            .map(|&s| if s > 0.0 { 1.0 / s } else { 0.0 })
+            .collect();
+        Self {
+            partition_of,
+            inv_sel_sum,
+        }
+    }
+
+    /// Number of partitions `P`.
+    pub fn partitions(&self) -> u32 {
+        self.inv_sel_sum.len() as u32
+    }
+
+    /// `(partition, 1/S_C)` of `light`.
+    #[inline]
+    pub fn of(&self, light: u32) -> Option<(u32, f64)> {
+        let p = *self.partition_of.get(light as usize)?;
+        Some((p, self.inv_sel_sum[p as usize]))
+    }
+}
+
+/// A point on light `l` (for clustering), sampled towards the scene centre or a corner.
+fn representative_point(lights: &Lights, l: u32, (lo, hi): (Vec3, Vec3)) -> Vec3 {
+    let centre = if lo.cmple(hi).all() {
+        0.5 * (lo + hi)
+    } else {
+        Vec3::ZERO
+    };
+    let probes = [
+        centre,
+        lo,
+        hi,
+        Vec3::new(lo.x, hi.y, lo.z),
+        Vec3::new(hi.x, lo.y, hi.z),
+    ];
+    for p in probes {
+        if let Some(s) = lights.sample_light(l, p, Vec2::splat(0.5))
+            && s.dist.is_finite()
+        {
+            return p + s.wi * s.dist;
+        }
+    }
+    centre
+}
+
+/// Splits `pts` into `k` spatially compact clusters (median split on the longest axis).
+fn split_clusters(mut pts: Vec<(u32, Vec3)>, k: usize, out: &mut Vec<Vec<u32>>) {
+    if pts.is_empty() {
+        return;
+    }
+    if k <= 1 || pts.len() <= 1 {
+        out.push(pts.into_iter().map(|p| p.0).collect());
+        return;
+    }
+    let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+    for (_, p) in &pts {
+        lo = lo.min(*p);
+        hi = hi.max(*p);
+    }
+    let ext = hi - lo;
+    let axis = if ext.x >= ext.y && ext.x >= ext.z {
+        0
+    } else if ext.y >= ext.z {
+        1
+    } else {
+        2
+    };
+    pts.sort_by(|a, b| a.1[axis].total_cmp(&b.1[axis]).then(a.0.cmp(&b.0)));
+    let k1 = k / 2;
+    let cut = (pts.len() * k1 / k).clamp(1, pts.len() - 1);
+    let right = pts.split_off(cut);
+    split_clusters(pts, k1, out);
+    split_clusters(right, k - k1, out);
+}
+
+/// A regular grid over the scene bounds.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Grid {
+    lo: Vec3,
+    scale: Vec3,
+    res: [u32; 3],
+}
+
+impl Grid {
+    /// A grid of `res` cells (or the adaptive default for an image of `width × height`).
+    pub fn new(
+        bounds: (Vec3, Vec3),
+        res: Option<[u32; 3]>,
+        width: u32,
+        height: u32,
+    ) -> Result<Self, RenderError> {
+        let (lo, hi) = bounds;
+        let valid = lo.is_finite() && hi.is_finite() && lo.cmple(hi).all();
+        let (lo, hi) = if valid {
+            (lo, hi)
+        } else {
+            (Vec3::ZERO, Vec3::ONE)
+        };
+        let ext = (hi - lo).max(Vec3::splat(1e-6));
+        let pad = ext * 1e-4;
+        let (lo, ext) = (lo - pad, ext + 2.0 * pad);
+        let res = match res {
+            Some(r) => {
+                if r.contains(&0) {
+                    return Err(RenderError::InvalidSetting {
+                        field: "grid_resolution",
+                        reason: "every axis needs at least one cell",
+                    });
+                }
+                r
+            }
+            None => {
+                let longest = ext.max_element();
+                let n = (width.max(height) / 16).clamp(4, 128) as f32;
+                let r = |e: f32| ((n * e / longest).ceil() as u32).max(1);
+                [r(ext.x), r(ext.y), r(ext.z)]
+            }
+        };
+        let cells = res.iter().map(|&r| u64::from(r)).product::<u64>();
+        if cells > MAX_GRID_CELLS {
+            return Err(RenderError::InvalidSetting {
+                field: "grid_resolution",
+                reason: "more than 2^22 cells",
+            });
+        }
+        let resf = Vec3::new(res[0] as f32, res[1] as f32, res[2] as f32);
+        Ok(Self {
+            lo,
+            scale: resf / ext,
+            res,
+        })
+    }
+
+    /// Cells per axis.
+    pub fn resolution(&self) -> [u32; 3] {
+        self.res
+    }
+
+    /// Total cells.
+    pub fn cells(&self) -> usize {
+        self.res.iter().map(|&r| r as usize).product()
+    }
+
+    /// Index of the cell containing `p` (clamped to the grid).
+    #[inline]
+    pub fn cell(&self, p: Vec3) -> u32 {
+        let q = (p - self.lo) * self.scale;
+        let c = |v: f32, r: u32| {
+            if v.is_finite() && v > 0.0 {
+                (v as u32).min(r - 1)
+            } else {
+                0
+            }
+        };
+        let (x, y, z) = (c(q.x, self.res[0]), c(q.y, self.res[1]), c(q.z, self.res[2]));
+        x + self.res[0] * (y + self.res[1] * z)
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Kind {
+    Cms,
+    PerLight,
+    OptimalMis,
+}
+
+/// Everything the vertex policy needs, fixed for a job.
+struct CvContext<'a> {
+    rs: &'a RenderScene,
+    st: RenderSettings,
+    kind: Kind,
+    comps: Components,
+    grid: Grid,
+    layout: ComponentLayout,
+    color: ColorMode,
+}
+
+/// Solved coefficients indexed by cell (grid cell or pixel).
+struct CoefficientTable {
+    slot: Vec<u32>,
+    coeffs: Vec<CellCoefficients>,
+}
+
+impl CoefficientTable {
+    #[inline]
+    fn get(&self, cell: u32) -> Option<&CellCoefficients> {
+        let s = *self.slot.get(cell as usize)?;
+        self.coeffs.get(s as usize)
+    }
+}
+
+/// A cell's training accumulator.
+#[derive(Clone, Debug)]
+enum CellAcc {
+    Moments(CellAccumulator),
+    Mean(MeanContributionAccumulator),
+}
+
+/// Training accumulators of one tile, in first-touch order.
+#[derive(Default)]
+struct TileCells {
+    index: HashMap<u32, usize>,
+    cells: Vec<(u32, CellAcc)>,
+    last: Option<(u32, usize)>,
+}
+
+impl TileCells {
+    #[inline]
+    fn get(&mut self, key: u32, ctx: &CvContext<'_>) -> &mut CellAcc {
+        let slot = match self.last {
+            Some((k, s)) if k == key => s,
+            _ => {
+                let n = self.cells.len();
+                let s = *self.index.entry(key).or_insert(n);
+                if s == n {
+                    let acc = match ctx.kind {
+                        Kind::PerLight => CellAcc::Mean(MeanContributionAccumulator::new(
+                            ctx.layout.partitions,
+                        )),
+                        _ => CellAcc::Moments(CellAccumulator::new(ctx.layout, ctx.color)),
+                    };
+                    self.cells.push((key, acc));
+                }
+                self.last = Some((key, s));
+                s
+            }
+        };
+        &mut self.cells[slot].1
+    }
+}
+
+enum Phase<'t> {
+    Plain,
+    Train(&'t mut TileCells),
+    Apply(&'t CoefficientTable),
+}
+
+/// One technique's sample in CV terms.
+#[derive(Clone, Copy, Debug)]
+struct TechSample {
+    /// `F = f/p` per channel.
+    value: [f64; 3],
+    /// Effective density `p` (1 for point masses).
+    pdf: f64,
+    /// Light cluster and its `λ`.
+    partition: Option<(u32, f64)>,
+    /// `λ_bsdf`.
+    lambda_bsdf: f64,
+    /// Roulette factor `R`.
+    scale: f64,
+}
+
+impl TechSample {
+    #[inline]
+    fn cv<'a>(&self, overlapping: &'a [f64]) -> CvSample<'a> {
+        CvSample {
+            pdf: self.pdf,
+            partition: self.partition,
+            overlapping,
+        }
+    }
+}
+
+/// The vertex policy: records (train) or modifies (apply) the direct lighting.
+struct Policy<'c, 't> {
+    ctx: &'c CvContext<'c>,
+    phase: Phase<'t>,
+    pixel: u32,
+    /// Surrogate pixel value of relative training [Hua eq. 25], or `None`.
+    surrogate: Option<f64>,
+    /// Σ over vertices of (controlled − plain) contributions.
+    cv_delta: Vec3,
+    /// Cell of the first vertex.
+    first_cell: Option<u32>,
+}
+
+#[inline]
+fn v3(v: Vec3) -> [f64; 3] {
+    [f64::from(v.x), f64::from(v.y), f64::from(v.z)]
+}
+
+impl Policy<'_, '_> {
+    /// The NEE and BSDF samples of a vertex; `None` when NEE did not run (delta BSDF or no
+    /// lights: the vertex is not controlled).
+    #[inline]
+    fn samples(&self, r: &VertexRecord) -> Option<[Option<TechSample>; 2]> {
+        let nee_light = r.nee_light?;
+        let comps = &self.ctx.comps;
+        let nee_only = self.ctx.kind == Kind::PerLight;
+        let nee = match r.light {
+            Some(lt) => {
+                let (c, inv_s) = comps.of(lt.light)?;
+                let pl = f64::from(lt.pdf_light);
+                let pb = if lt.visible {
+                    f64::from(lt.pdf_bsdf)
+                } else {
+                    0.0
+                };
+                let p = pl + pb;
+                let f = v3(lt.value);
+                Some(TechSample {
+                    value: f.map(|x| x / p),
+                    pdf: if nee_only { pl } else { p },
+                    partition: Some((c, pl * inv_s)),
+                    lambda_bsdf: pb,
+                    scale: 1.0,
+                })
+            }
+            None => comps.of(nee_light).map(|(c, inv_s)| TechSample {
+                value: [0.0; 3],
+                pdf: 1.0,
+                partition: Some((c, inv_s)),
+                lambda_bsdf: 0.0,
+                scale: 1.0,
+            }),
+        };
+        let bsdf = match r.bsdf {
+            None => Some(TechSample {
+                value: [0.0; 3],
+                pdf: 1.0,
+                partition: None,
+                lambda_bsdf: 1.0,
+                scale: 1.0,
+            }),
+            Some(b) if !b.traced => None,
+            Some(b) => {
+                let scale = 1.0 / f64::from(b.rr_q);
+                if b.delta {
+                    Some(TechSample {
+                        value: v3(b.weight * b.emitted),
+                        pdf: 1.0,
+                        partition: None,
+                        lambda_bsdf: 1.0,
+                        scale,
+                    })
+                } else {
+                    let pb = f64::from(b.pdf_bsdf);
+                    let pl = f64::from(b.pdf_light);
+                    let p = pb + pl;
+                    let fw = v3(b.weight * b.emitted);
+                    let partition = match b.hit_light {
+                        Some(l) if pl > 0.0 => comps.of(l).map(|(c, inv_s)| (c, pl * inv_s)),
+                        _ => None,
+                    };
+                    Some(TechSample {
+                        value: fw.map(|x| x * pb / p),
+                        pdf: p,
+                        partition,
+                        lambda_bsdf: pb,
+                        scale,
+                    })
+                }
+            }
+        };
+        Some([nee, bsdf])
+    }
+
+    #[inline]
+    fn cell_of(&self, r: &VertexRecord) -> Option<u32> {
+        match self.ctx.kind {
+            Kind::Cms | Kind::PerLight => Some(self.ctx.grid.cell(r.p)),
+            Kind::OptimalMis => (r.depth == 0).then_some(self.pixel),
+        }
+    }
+}
+
+impl VertexObserver for Policy<'_, '_> {
+    const CONTROLS_DIRECT: bool = true;
+
+    #[inline]
+    fn controlled_vertex(&mut self, r: &VertexRecord) -> Vec3 {
+        let Some(samples) = self.samples(r) else {
+            // Only the BSDF technique ran: its full (w = 1) contribution.
+            return match r.bsdf {
+                Some(b) if b.traced => r.throughput * b.weight / b.rr_q * b.emitted,
+                _ => Vec3::ZERO,
+            };
+        };
+        let mut plain = [0.0f64; 3];
+        for s in samples.iter().flatten() {
+            for c in 0..3 {
+                plain[c] += s.scale * s.value[c];
+            }
+        }
+        let cell = self.cell_of(r);
+        if r.depth == 0 {
+            self.first_cell = cell;
+        }
+        let kind = self.ctx.kind;
+        let mut out = plain;
+        match (&mut self.phase, cell) {
+            (Phase::Train(cells), Some(key)) => {
+                let acc = cells.get(key, self.ctx);
+                match acc {
+                    CellAcc::Moments(acc) => {
+                        let w0 = if kind == Kind::OptimalMis {
+                            1.0
+                        } else {
+                            let t = r.throughput;
+                            training_weight(f64::from(t.x + t.y + t.z) / 3.0, self.surrogate)
+                        };
+                        for s in samples.iter().flatten() {
+                            let lb = [s.lambda_bsdf];
+                            let _ = acc.add(w0 * s.scale * s.scale, s.value, &s.cv(&lb));
+                        }
+                    }
+                    CellAcc::Mean(acc) => {
+                        acc.add_vertex();
+                        if let (Some(lt), Some(nee)) = (r.light, samples[0])
+                            && let Some((c, _)) = self.ctx.comps.of(lt.light)
+                        {
+                            acc.add(c, nee.value);
+                        }
+                    }
+                }
+            }
+            (Phase::Apply(table), Some(key)) => {
+                if let Some(co) = table.get(key) {
+                    let a = co.alpha_sum();
+                    out = a;
+                    match kind {
+                        Kind::PerLight => {
+                            for (i, s) in samples.iter().enumerate() {
+                                let Some(s) = s else { continue };
+                                let t = if i == 0 {
+                                    co.cv_term(&s.cv(&[]))
+                                } else {
+                                    [0.0; 3]
+                                };
+                                for c in 0..3 {
+                                    out[c] += s.scale * (s.value[c] - t[c]);
+                                }
+                            }
+                        }
+                        _ => {
+                            for s in samples.iter().flatten() {
+                                let lb = [s.lambda_bsdf];
+                                let t = co.cv_term(&s.cv(&lb));
+                                for c in 0..3 {
+                                    out[c] += s.scale * (s.value[c] - t[c]);
+                                }
+                            }
+                        }
+                    }
+                    let d = Vec3::new(
+                        (out[0] - plain[0]) as f32,
+                        (out[1] - plain[1]) as f32,
+                        (out[2] - plain[2]) as f32,
+                    );
+                    self.cv_delta += r.throughput * d;
+                }
+            }
+            _ => {}
+        }
+        r.throughput * Vec3::new(out[0] as f32, out[1] as f32, out[2] as f32)
+    }
+}
+
+/// What one tile of a phase produced.
+struct TileOut {
+    film: Film,
+    rays: u64,
+    cells: TileCells,
+    cv_sum: Vec<[f64; 3]>,
+    cell_id: Vec<f32>,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum PhaseKind {
+    Plain,
+    Train,
+    Apply,
+}
+
+fn run_tile(
+    ctx: &CvContext<'_>,
+    tile: TileRect,
+    samples: Range<u32>,
+    kind: PhaseKind,
+    table: Option<&CoefficientTable>,
+    surrogate: Option<&[f64]>,
+) -> TileOut {
+    let rs = ctx.rs;
+    let st = &ctx.st;
+    let mut film = Film::new_rect(tile.x0, tile.y0, tile.width, tile.height);
+    let mut cells = TileCells::default();
+    let n = tile.pixel_count() as usize;
+    let mut cv_sum = vec![[0.0f64; 3]; if kind == PhaseKind::Apply { n } else { 0 }];
+    let mut cell_id = vec![-1.0f32; if kind == PhaseKind::Apply { n } else { 0 }];
+    let mut rays = 0u64;
+    let mut i = 0usize;
+    for y in tile.y0..tile.y0 + tile.height {
+        for x in tile.x0..tile.x0 + tile.width {
+            let pixel = y * rs.width + x;
+            let sur = surrogate.map(|s| s[pixel as usize]);
+            let mut rejected = 0u64;
+            for s in samples.clone() {
+                let mut sampler = Sampler::new(st.seed, pixel, s);
+                let u = sampler.next_2d();
+                let ray = rs
+                    .camera
+                    .ray(Vec2::new(x as f32 + u.x, y as f32 + u.y));
+                let phase = match (kind, table) {
+                    (PhaseKind::Train, _) => Phase::Train(&mut cells),
+                    (PhaseKind::Apply, Some(t)) => Phase::Apply(t),
+                    _ => Phase::Plain,
+                };
+                let mut pol = Policy {
+                    ctx,
+                    phase,
+                    pixel,
+                    surrogate: sur,
+                    cv_delta: Vec3::ZERO,
+                    first_cell: None,
+                };
+                let sample = super::path::trace(rs, st, ray, &mut sampler, &mut pol);
+                rays += u64::from(sample.rays);
+                let px = film.pixel_mut(x, y);
+                if sample.radiance.is_finite() {
+                    px.add(sample.radiance, sample.albedo, sample.normal);
+                    if kind == PhaseKind::Apply {
+                        let d = pol.cv_delta;
+                        if d.is_finite() {
+                            for c in 0..3 {
+                                cv_sum[i][c] += f64::from(d[c]);
+                            }
+                        }
+                    }
+                } else {
+                    px.add(Vec3::ZERO, sample.albedo, sample.normal);
+                    rejected += 1;
+                }
+                if kind == PhaseKind::Apply
+                    && let Some(c) = pol.first_cell
+                {
+                    cell_id[i] = c as f32;
+                }
+            }
+            film.rejected += rejected;
+            i += 1;
+        }
+    }
+    TileOut {
+        film,
+        rays,
+        cells,
+        cv_sum,
+        cell_id,
+    }
+}
+
+/// Renders the tiles of one phase on `pool`, in parallel, returning outputs in tile order.
+fn run_phase(
+    pool: &rayon::ThreadPool,
+    ctx: &CvContext<'_>,
+    tiles: &[TileRect],
+    samples: Range<u32>,
+    kind: PhaseKind,
+    table: Option<&CoefficientTable>,
+    surrogate: Option<&[f64]>,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Vec<TileOut> {
+    pool.install(|| {
+        tiles
+            .par_iter()
+            .map(|&t| {
+                let out = run_tile(ctx, t, samples.clone(), kind, table, surrogate);
+                progress(t.pixel_count() * u64::from(samples.end - samples.start));
+                out
+            })
+            .collect()
+    })
+}
+
+/// Runs every phase of `settings.estimator` in-process and returns the final film (all
+/// samples of all phases), its stats and the estimator report. Estimators without phases
+/// (`path`, `ocv`) are rendered with [`crate::tile::render_image`] and an empty report.
+/// `progress(done, total)` counts samples over all phases.
+pub fn render_estimator_image(
+    scene: &RenderScene,
+    settings: &RenderSettings,
+    opts: &RenderOptions,
+    progress: &(dyn Fn(u64, u64) + Sync),
+) -> Result<(Film, RenderStats, EstimatorReport), RenderError> {
+    settings.validate()?;
+    let start = Instant::now();
+    let rs = scene;
+    let (kind, color, relative, training_spp, surrogate_spp, grid_res, max_lights, policy) =
+        match settings.estimator {
+            Estimator::Cms(o) => (
+                Kind::Cms,
+                o.color,
+                o.relative,
+                o.training_spp,
+                if o.relative { o.surrogate_spp.max(1) } else { 0 },
+                o.grid_resolution,
+                o.max_light_components,
+                SolvePolicy {
+                    ridge: o.ridge,
+                    min_samples: o.min_samples,
+                    ..SolvePolicy::default()
+                },
+            ),
+            Estimator::PerLightCv(o) => (
+                Kind::PerLight,
+                CvColor::Rgb,
+                false,
+                o.training_spp,
+                0,
+                o.grid_resolution,
+                o.max_light_components,
+                SolvePolicy::default(),
+            ),
+            Estimator::OptimalMis(o) => (
+                Kind::OptimalMis,
+                o.color,
+                false,
+                o.training_spp,
+                0,
+                Some([1, 1, 1]),
+                o.max_light_components,
+                SolvePolicy {
+                    ridge: o.ridge,
+                    min_samples: o.min_samples,
+                    ..SolvePolicy::default()
+                },
+            ),
+            _ => {
+                let (film, stats) = crate::tile::render_image(rs, settings, opts, progress)?;
+                let report = EstimatorReport {
+                    estimator: estimator_name(&settings.estimator).to_string(),
+                    render_spp: settings.spp,
+                    lights: rs.lights.len() as u32,
+                    effects: rs
+                        .techniques(settings)
+                        .into_iter()
+                        .map(String::from)
+                        .collect(),
+                    phases: PhaseTimings {
+                        render: stats.seconds,
+                        ..PhaseTimings::default()
+                    },
+                    ..EstimatorReport::default()
+                };
+                return Ok((film, stats, report));
+            }
+        };
+    if rs.width == 0 || rs.height == 0 {
+        return Err(RenderError::EmptyFilm {
+            width: rs.width,
+            height: rs.height,
+        });
+    }
+    let spp = settings.spp;
+    let s_spp = surrogate_spp.min(spp);
+    let t_spp = training_spp.min(spp - s_spp);
+    let r_spp = spp - s_spp - t_spp;
+
+    let bounds = rs.accel.bounds();
+    let comps = Components::new(&rs.lights, max_lights, bounds);
+    let overlapping = u32::from(kind != Kind::PerLight);
+    let layout = ComponentLayout::new(comps.partitions(), overlapping).map_err(|_| {
+        RenderError::InvalidSetting {
+            field: "estimator",
+            reason: "invalid component layout",
+        }
+    })?;
+    let grid = Grid::new(bounds, grid_res, rs.width, rs.height)?;
+    let ctx = CvContext {
+        rs,
+        st: *settings,
+        kind,
+        comps,
+        grid,
+        layout,
+        color: color.mode(),
+    };
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(opts.threads)
+        .build()
+        .map_err(|e| RenderError::ThreadPool(e.to_string()))?;
+    let total = u64::from(rs.width) * u64::from(rs.height) * u64::from(spp);
+    let done = AtomicU64::new(0);
+    let tick = |n: u64| {
+        let d = done.fetch_add(n, Ordering::Relaxed) + n;
+        progress(d, total);
+    };
+    let tiles = TileRect::grid(rs.width, rs.height, opts.tile_size);
+    let mut film = Film::new(rs.width, rs.height);
+    let mut rays = 0u64;
+    let mut timings = PhaseTimings::default();
+    let mut overhead = 0.0;
+
+    // ---- surrogate [Hua §4.2.1, §6.1] ----
+    let t0 = Instant::now();
+    let mut surrogate: Option<Vec<f64>> = None;
+    if relative && s_spp > 0 {
+        let outs = run_phase(
+            &pool,
+            &ctx,
+            &tiles,
+            0..s_spp,
+            PhaseKind::Plain,
+            None,
+            None,
+            &tick,
+        );
+        let mut sfilm = Film::new(rs.width, rs.height);
+        for o in &outs {
+            sfilm.merge(&o.film);
+            rays += o.rays;
+        }
+        film.merge(&sfilm);
+        let td = Instant::now();
+        surrogate = Some(surrogate_image(&sfilm));
+        overhead += td.elapsed().as_secs_f64();
+    }
+    timings.surrogate = t0.elapsed().as_secs_f64();
+
+    // ---- train ----
+    let t0 = Instant::now();
+    let train_tiles = TileRect::grid(rs.width, rs.height, TRAIN_TILE);
+    let outs = run_phase(
+        &pool,
+        &ctx,
+        &train_tiles,
+        s_spp..s_spp + t_spp,
+        PhaseKind::Train,
+        None,
+        surrogate.as_deref(),
+        &tick,
+    );
+    timings.train = t0.elapsed().as_secs_f64();
+
+    // ---- merge in canonical tile order, solve ----
+    let t0 = Instant::now();
+    let mut merged: BTreeMap<u32, CellAcc> = BTreeMap::new();
+    for o in outs {
+        film.merge(&o.film);
+        rays += o.rays;
+        for (key, acc) in o.cells.cells {
+            match merged.entry(key) {
+                std::collections::btree_map::Entry::Vacant(v) => {
+                    v.insert(acc);
+                }
+                std::collections::btree_map::Entry::Occupied(mut e) => match (e.get_mut(), &acc) {
+                    (CellAcc::Moments(a), CellAcc::Moments(b)) => {
+                        let _ = a.merge(b);
+                    }
+                    (CellAcc::Mean(a), CellAcc::Mean(b)) => {
+                        let _ = a.merge(b);
+                    }
+                    _ => {}
+                },
+            }
+        }
+    }
+    let cells: Vec<(u32, CellAcc)> = merged.into_iter().collect();
+    let solved: Vec<(u32, CellCoefficients, u64)> = pool.install(|| {
+        cells
+            .par_iter()
+            .map(|(key, acc)| match acc {
+                CellAcc::Moments(a) => (*key, solve(a, &policy), a.rejected()),
+                CellAcc::Mean(a) => (*key, mean_contribution_coefficients(a), a.rejected()),
+            })
+            .collect()
+    });
+    let table_len = match kind {
+        Kind::OptimalMis => rs.width as usize * rs.height as usize,
+        _ => grid.cells(),
+    };
+    let mut table = CoefficientTable {
+        slot: vec![u32::MAX; table_len],
+        coeffs: Vec::with_capacity(solved.len()),
+    };
+    let mut report = EstimatorReport {
+        estimator: estimator_name(&settings.estimator).to_string(),
+        surrogate_spp: s_spp,
+        training_spp: t_spp,
+        render_spp: r_spp,
+        grid_resolution: if kind == Kind::OptimalMis {
+            [0; 3]
+        } else {
+            grid.resolution()
+        },
+        cells: solved.len() as u64,
+        lights: rs.lights.len() as u32,
+        light_components: layout.partitions,
+        overlapping_components: layout.overlapping,
+        ..EstimatorReport::default()
+    };
+    for (key, co, rejected) in solved {
+        report.rejected_training_samples += rejected;
+        match co.diagnostics().status {
+            SolveStatus::Solved => report.cells_solved += 1,
+            SolveStatus::Fallback(r) => {
+                *report.cells_fallback.entry(format!("{r:?}")).or_insert(0) += 1;
+            }
+        }
+        if let Some(s) = table.slot.get_mut(key as usize) {
+            *s = table.coeffs.len() as u32;
+            table.coeffs.push(co);
+        }
+    }
+    timings.solve = t0.elapsed().as_secs_f64();
+    overhead += timings.solve;
+
+    // ---- render with the CV ----
+    let t0 = Instant::now();
+    let n = rs.width as usize * rs.height as usize;
+    let mut cv_sum = vec![[0.0f64; 3]; n];
+    let mut cell_id = vec![-1.0f32; n];
+    if r_spp > 0 {
+        let outs = run_phase(
+            &pool,
+            &ctx,
+            &tiles,
+            s_spp + t_spp..spp,
+            PhaseKind::Apply,
+            Some(&table),
+            None,
+            &tick,
+        );
+        for (o, t) in outs.iter().zip(&tiles) {
+            film.merge(&o.film);
+            rays += o.rays;
+            let mut i = 0;
+            for y in t.y0..t.y0 + t.height {
+                for x in t.x0..t.x0 + t.width {
+                    let p = (y * rs.width + x) as usize;
+                    cv_sum[p] = o.cv_sum[i];
+                    cell_id[p] = o.cell_id[i];
+                    i += 1;
+                }
+            }
+        }
+    }
+    timings.render = t0.elapsed().as_secs_f64();
+
+    let cv_layer = cv_sum
+        .iter()
+        .zip(&film.pixels)
+        .map(|(s, p)| s.map(|v| (v / p.count.max(1) as f64) as f32))
+        .collect();
+    report.layers = vec![
+        FilmLayer {
+            name: "cv_term",
+            data: cv_layer,
+        },
+        FilmLayer {
+            name: "cell",
+            data: cell_id.into_iter().map(|c| [c; 3]).collect(),
+        },
+    ];
+    report.phases = timings;
+    report.cv_overhead_seconds = overhead;
+    let mut effects: Vec<String> = rs
+        .techniques(settings)
+        .into_iter()
+        .map(String::from)
+        .collect();
+    if layout.partitions > 0 {
+        effects.push(format!("cv_lights:{}", layout.partitions));
+    }
+    if rs.lights.env_light().is_some() {
+        effects.push("cv_env".into());
+    }
+    if layout.overlapping > 0 {
+        effects.push("cv_bsdf".into());
+    }
+    report.effects = effects;
+    let stats = RenderStats {
+        samples: film.sample_count(),
+        rays,
+        seconds: start.elapsed().as_secs_f64(),
+    };
+    Ok((film, stats, report))
+}
+
+fn estimator_name(e: &Estimator) -> &'static str {
+    match e {
+        Estimator::Path => "path",
+        Estimator::Cms(_) => "cms",
+        Estimator::PerLightCv(_) => "per_light_cv",
+        Estimator::OptimalMis(_) => "optimal_mis",
+        #[allow(unreachable_patterns)]
+        _ => "other",
+    }
+}
+
+/// Denoised per-pixel surrogate (channel mean) of a low-spp film [Hua §4.2.1].
+fn surrogate_image(film: &Film) -> Vec<f64> {
+    let (w, h) = (film.width as usize, film.height as usize);
+    let flat = |img: Vec<[f32; 3]>| -> Vec<f32> { img.into_iter().flatten().collect() };
+    let color = flat(film.mean_image());
+    let var: Vec<f32> = film
+        .variance_image()
+        .into_iter()
+        .map(|v| ((v[0] + v[1] + v[2]) / 3.0).max(0.0))
+        .collect();
+    let albedo = flat(film.albedo_image());
+    let normal = flat(film.normal_image());
+    let den = estimators::denoise::atrous(
+        &color,
+        &var,
+        Some(&albedo),
+        Some(&normal),
+        w,
+        h,
+        &estimators::denoise::AtrousOptions::default(),
+    )
+    .unwrap_or(color);
+    den.chunks_exact(3)
+        .map(|c| f64::from(c[0] + c[1] + c[2]) / 3.0)
+        .collect()
+}

@@ -1,0 +1,129 @@
+//! Unbiasedness of the CV estimators: the mean over seeds of each estimator's image (whole
+//! image and quadrants, per channel) matches a high-spp `path` reference within five
+//! standard errors (errors of both sides combined).
+
+mod cv_support;
+
+use cv_support::{load, mean_se, region_mean, render};
+use render::integrator::cms::CmsOptions;
+use render::integrator::optimal_mis::OptimalMisOptions;
+use render::integrator::per_light_cv::PerLightCvOptions;
+use render::{Estimator, RenderOptions};
+
+const W: u32 = 24;
+const H: u32 = 24;
+
+/// Regions: whole image and the four quadrants.
+fn regions() -> Vec<(u32, u32, u32, u32)> {
+    vec![
+        (0, 0, W, H),
+        (0, 0, W / 2, H / 2),
+        (W / 2, 0, W, H / 2),
+        (0, H / 2, W / 2, H),
+        (W / 2, H / 2, W, H),
+    ]
+}
+
+fn check(scene_rel: &str, estimator: Estimator, seeds: u64, spp: u32, ref_spp: u32) {
+    let s = load(scene_rel, W, H);
+    let depth = Some(3);
+    let opts = RenderOptions::default();
+    let (reference, _) = render(&s, Estimator::Path, ref_spp, 999, depth, opts);
+    let mut per_seed: Vec<Vec<[f64; 3]>> = Vec::new();
+    for seed in 0..seeds {
+        let (f, report) = render(&s, estimator, spp, seed, depth, opts);
+        assert!(cv_support::all_finite(&f));
+        assert!(report.render_spp > 0, "{report:?}");
+        per_seed.push(
+            regions()
+                .iter()
+                .map(|&(a, b, c, d)| region_mean(&f, a, b, c, d))
+                .collect(),
+        );
+    }
+    for (ri, &(x0, y0, x1, y1)) in regions().iter().enumerate() {
+        let r = region_mean(&reference, x0, y0, x1, y1);
+        // Standard error of the reference region mean from its per-pixel variances.
+        let mut rv = [0.0f64; 3];
+        for y in y0..y1 {
+            for x in x0..x1 {
+                let v = reference.pixel(x, y).variance_of_mean();
+                for c in 0..3 {
+                    rv[c] += v[c];
+                }
+            }
+        }
+        let n = f64::from((x1 - x0) * (y1 - y0));
+        for c in 0..3 {
+            let xs: Vec<f64> = per_seed.iter().map(|m| m[ri][c]).collect();
+            let (m, se) = mean_se(&xs);
+            let se_ref = rv[c].sqrt() / n;
+            let tol = 5.0 * (se * se + se_ref * se_ref).sqrt() + 1e-6 * r[c].abs();
+            println!(
+                "{scene_rel} {:?} region {ri} ch {c}: cv {m:.5} ± {se:.5}, path {:.5} ± {se_ref:.5}",
+                std::mem::discriminant(&estimator),
+                r[c]
+            );
+            assert!(
+                (m - r[c]).abs() <= tol,
+                "{scene_rel} region {ri} channel {c}: {m} vs {} (tol {tol})",
+                r[c]
+            );
+        }
+    }
+}
+
+fn cms_coarse() -> Estimator {
+    Estimator::Cms(CmsOptions {
+        training_spp: 8,
+        grid_resolution: Some([4, 4, 4]),
+        min_samples: 8,
+        ..CmsOptions::default()
+    })
+}
+
+#[test]
+fn cms_is_unbiased_on_colour_lamp() {
+    check("scenes/colour-lamp/scene.json", cms_coarse(), 16, 16, 1024);
+}
+
+#[test]
+fn cms_is_unbiased_on_veach_mis() {
+    check("scenes/veach-mis/scene.json", cms_coarse(), 16, 16, 1024);
+}
+
+#[test]
+fn cms_absolute_mono_is_unbiased_on_cornell_box() {
+    let e = Estimator::Cms(CmsOptions {
+        relative: false,
+        color: render::integrator::cv::CvColor::Mono,
+        training_spp: 8,
+        ..CmsOptions::default()
+    });
+    check("scenes/cornell-box/scene.json", e, 16, 16, 1024);
+}
+
+#[test]
+fn cms_is_unbiased_on_envmap() {
+    check("scenes/envmap/scene.json", cms_coarse(), 16, 16, 1024);
+}
+
+#[test]
+fn per_light_cv_is_unbiased_on_many_lights() {
+    let e = Estimator::PerLightCv(PerLightCvOptions {
+        training_spp: 8,
+        grid_resolution: Some([4, 4, 4]),
+        ..PerLightCvOptions::default()
+    });
+    check("scenes/many-lights/scene.json", e, 16, 16, 1024);
+}
+
+#[test]
+fn optimal_mis_is_unbiased_on_veach_mis() {
+    let e = Estimator::OptimalMis(OptimalMisOptions {
+        training_spp: 8,
+        min_samples: 8,
+        ..OptimalMisOptions::default()
+    });
+    check("scenes/veach-mis/scene.json", e, 16, 16, 1024);
+}
