@@ -22,7 +22,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use crate::film::Film;
-use crate::integrator::{Estimator, RenderError, RenderScene, RenderSettings, path};
+use crate::integrator::{Estimator, RenderError, RenderScene, RenderSettings, ocv, path};
 
 /// A rectangle of the image, in pixels.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -129,6 +129,7 @@ pub fn render_tile_counted(
             for s in samples.clone() {
                 let sample = match st.estimator {
                     Estimator::Path => path::sample_pixel(rs, st, x, y, s),
+                    Estimator::Ocv(o) => ocv::sample_pixel(rs, st, &o, x, y, s),
                     // Phased CV estimators need their coefficients (see
                     // `cv::render_estimator_image`); a bare tile renders the baseline.
                     Estimator::Cms(_) | Estimator::PerLightCv(_) | Estimator::OptimalMis(_) => {

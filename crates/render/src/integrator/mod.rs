@@ -9,6 +9,7 @@
 //! | `cms` | `cms.rs` | controlled mixture sampling: per-cell optimal CV at every vertex [Hua 2023] |
 //! | `per_light_cv` | `per_light_cv.rs` | per-cell mean per-light NEE contribution as CV (Vévoda 2018) [Hua §7.2] |
 //! | `optimal_mis` | `optimal_mis.rs` | the CMS system per pixel for direct illumination (Kondapaneni 2019) [Hua §7.4] |
+//! | `ocv` | `ocv.rs` | Fan 2006: deterministic mixture sampling + optimizing CV for the direct-lighting gather at each vertex |
 //!
 //! `cms`, `per_light_cv` and `optimal_mis` share `cv.rs` (grid, components, phases); their
 //! entry point (which also renders every other estimator) is [`cv::render_estimator_image`].
@@ -35,6 +36,7 @@
 //! { "spp": 256, "seed": 7, "max_depth": 5, "rr_depth": 6, "mis": "power" }
 //! ```
 
+pub mod ocv;
 pub mod cms;
 pub mod cv;
 pub mod optimal_mis;
@@ -52,13 +54,15 @@ use crate::light::{LightSelection, Lights};
 /// The estimator a job renders with (closed set; dispatched with `match`).
 ///
 /// JSON: internally tagged by `kind`, the variant's options beside it, e.g.
-/// `{ "kind": "path" }`, `{ "kind": "cms", "relative": true }`.
+/// `{ "kind": "path" }`, `{ "kind": "ocv", "spe": 32 }`.
 #[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
 pub enum Estimator {
     /// The reference NEE + BSDF MIS path tracer.
     #[default]
     Path,
+    /// Optimizing control variates for the direct-lighting gather [Fan 2006].
+    Ocv(ocv::OcvOptions),
     /// Controlled mixture sampling [Hua 2023] (see [`cms`]).
     Cms(cms::CmsOptions),
     /// Vévoda-style per-light CV [Hua §7.2] (see [`per_light_cv`]).

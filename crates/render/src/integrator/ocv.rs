@@ -1,0 +1,514 @@
+//! `ocv` — Optimizing Control Variates for the direct-lighting gather [Fan 2006].
+//!
+//! At every scattering vertex the direct illumination `∫ f(wo, wi) |cos θi| Le(wi) V dwi` is
+//! estimated from `spe` samples drawn by **deterministic mixture sampling** [Fan §4]: component
+//! `j` (the BSDF, then one per light) gets exactly `n_j ≈ spe·α_j` samples
+//! ([`estimators::mis::deterministic_counts`]), `α_BSDF = bsdf_share` and the rest split
+//! equally among the light components [Fan §5.1]. The samples are fitted by penalised least
+//! squares with an intercept, dropping the last component [Fan eq. 9–11]
+//! ([`estimators::ocv::ocv_estimate`]), and the vertex estimate is `β0 + Σ β_j` [Fan eq. 10].
+//! With `optimize: false` the estimate is the plain deterministic-mixture (balance heuristic)
+//! estimate [Fan eq. 6] — Fan's "MIS" column of Table 1 — from the very same samples.
+//!
+//! Global illumination continues as in `path`: one BSDF-sampled direction per vertex (same
+//! sampler dimensions, same Russian roulette). Emission found by that continuation ray is
+//! **not** added after a vertex that gathered (the gather already integrated it); it is added
+//! with weight 1 at the camera hit and after a delta (conductor) vertex, where no gather runs.
+//!
+//! # Parameters (`estimator.kind = "ocv"`)
+//! | name | type | default | meaning |
+//! |---|---|---|---|
+//! | `spe` | u32 | 16 | samples per estimate (per vertex gather), ≥ 1 |
+//! | `lambda` | f64 | 1.0 | ridge penalty λ [Fan eq. 11] |
+//! | `bsdf_share` | f64 | 0.5 | mixture weight α of the BSDF component (the rest is split equally among the light components), in [0, 1] |
+//! | `penalize_intercept` | bool | false | literal [Fan eq. 11]: also penalise β0 (shrinks each estimate by ≈ λ/(N+λ); see `estimators::ocv`) |
+//! | `optimize` | bool | true | false: plain deterministic-mixture estimate [Fan eq. 6] (Fan's MIS baseline) |
+//! | `max_light_components` | u32 | 16 | with more lights than this, all lights form **one** component sampled by the light selection (Fan §7's advice for many lights) |
+//!
+//! ```json
+//! { "estimator": { "kind": "ocv", "spe": 64, "lambda": 1.0, "bsdf_share": 0.5 }, "max_depth": 2 }
+//! ```
+//!
+//! # Measures and the mixture density
+//! All densities are solid-angle densities at the shading point, in **path space**: a sample
+//! is the point its ray reaches first. A light sample whose shadow ray is blocked is a point
+//! on the light the BSDF technique cannot produce (`p_BSDF = 0` there); a BSDF sample that
+//! hits light `k` has density `p_k` = light `k`'s sampling density of that point, and 0 for
+//! every other light (lights overlapping as seen from the vertex are thereby handled
+//! exactly). A failed draw (BSDF sample below the surface, back side of a one-sided light) is
+//! the component's "null point": value 0, density 1 for its own component and 0 for the
+//! others, so that every component density integrates to one and eq. 7 stays unbiased.
+//!
+//! # Sampler
+//! The continuation uses `path`'s per-vertex dimensions. Gather sample `i` of component `j`
+//! at vertex `d` is point `spp_index · n_j + i` of a sequence seeded by `(seed, d, j)`, so the
+//! `n_j` samples of one estimate are consecutive (stratified) points.
+
+use glam::{Vec2, Vec3};
+use serde::{Deserialize, Serialize};
+
+use super::path::{PathSample, vertex_dimension};
+use super::{RenderScene, RenderSettings};
+use crate::accel::Hit;
+use crate::bsdf::Bsdf;
+use crate::math::{Frame, Ray};
+use crate::sampler::Sampler;
+
+/// Most emitters a camera ray passes through with `hide_emitters` before giving up.
+const MAX_HIDDEN_EMITTERS: u32 = 64;
+
+/// Options of the `ocv` estimator (see the module docs for the table).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct OcvOptions {
+    /// Samples per estimate.
+    pub spe: u32,
+    /// Ridge penalty λ [Fan eq. 11].
+    pub lambda: f64,
+    /// Mixture weight of the BSDF component.
+    pub bsdf_share: f64,
+    /// Also penalise the intercept (literal eq. 11).
+    pub penalize_intercept: bool,
+    /// Fit the CV (false: plain deterministic-mixture estimate, eq. 6).
+    pub optimize: bool,
+    /// Above this many lights, one combined light component.
+    pub max_light_components: u32,
+}
+
+impl Default for OcvOptions {
+    fn default() -> Self {
+        Self {
+            spe: 16,
+            lambda: 1.0,
+            bsdf_share: 0.5,
+            penalize_intercept: false,
+            optimize: true,
+            max_light_components: 16,
+        }
+    }
+}
+
+impl OcvOptions {
+    /// The option names (for error messages listing the valid ones).
+    pub const FIELDS: &'static [&'static str] = &[
+        "spe",
+        "lambda",
+        "bsdf_share",
+        "penalize_intercept",
+        "optimize",
+        "max_light_components",
+    ];
+
+    /// Checks the ranges; returns the offending field and why.
+    pub fn validate(&self) -> Result<(), (&'static str, &'static str)> {
+        if self.spe == 0 {
+            return Err(("spe", "must be ≥ 1"));
+        }
+        if !(self.lambda >= 0.0 && self.lambda.is_finite()) {
+            return Err(("lambda", "must be finite and ≥ 0"));
+        }
+        if !(0.0..=1.0).contains(&self.bsdf_share) {
+            return Err(("bsdf_share", "must lie in [0, 1]"));
+        }
+        Ok(())
+    }
+}
+
+/// What the gather draws its samples from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Component {
+    /// BSDF sampling.
+    Bsdf,
+    /// Sampling light `k` alone (pdf excludes the selection pmf).
+    Light(u32),
+    /// All lights by the light selection (pdf includes the pmf).
+    AllLights,
+}
+
+/// Per-camera-sample scratch buffers reused across vertices.
+#[derive(Default)]
+struct Scratch {
+    /// Active components (count > 0).
+    components: Vec<(Component, usize)>,
+    /// Light → column in the pdf table (per-light mode), `usize::MAX` if inactive.
+    light_column: Vec<usize>,
+    values: Vec<[f64; 3]>,
+    pdfs: Vec<f64>,
+    mixture: Vec<f64>,
+}
+
+/// splitmix64 finaliser.
+#[inline]
+fn mix64(mut z: u64) -> u64 {
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
+
+impl Scratch {
+    /// Sets up the components and their deterministic counts for this scene and options.
+    fn new(rs: &RenderScene, opts: &OcvOptions) -> Self {
+        let mut s = Scratch::default();
+        let n_lights = rs.lights.len();
+        if n_lights == 0 {
+            return s;
+        }
+        let per_light = n_lights <= opts.max_light_components as usize;
+        let mut comps = vec![Component::Bsdf];
+        let mut weights = vec![opts.bsdf_share];
+        let light_share = 1.0 - opts.bsdf_share;
+        if per_light {
+            for k in 0..n_lights {
+                comps.push(Component::Light(k as u32));
+                weights.push(light_share / n_lights as f64);
+            }
+        } else {
+            comps.push(Component::AllLights);
+            weights.push(light_share);
+        }
+        let counts = estimators::mis::deterministic_counts(&weights, opts.spe.max(1) as usize)
+            .unwrap_or_else(|| vec![0; weights.len()]);
+        s.light_column = vec![usize::MAX; n_lights];
+        for (c, n) in comps.into_iter().zip(counts) {
+            if n > 0 {
+                if let Component::Light(k) = c {
+                    s.light_column[k as usize] = s.components.len();
+                }
+                s.components.push((c, n));
+            }
+        }
+        let total: usize = s.components.iter().map(|c| c.1).sum();
+        s.mixture = s
+            .components
+            .iter()
+            .map(|c| c.1 as f64 / total.max(1) as f64)
+            .collect();
+        s
+    }
+
+    /// Column of the pdf table that light `k` contributes to, if its component is active.
+    #[inline]
+    fn column_of_light(&self, k: u32) -> Option<usize> {
+        match self
+            .components
+            .iter()
+            .position(|c| c.0 == Component::AllLights)
+        {
+            Some(col) => Some(col),
+            None => self
+                .light_column
+                .get(k as usize)
+                .copied()
+                .filter(|&c| c != usize::MAX),
+        }
+    }
+}
+
+/// One deterministic-mixture gather at hit `h` with local outgoing direction `wo`: the OCV
+/// (or plain) estimate of the reflected direct illumination (not multiplied by the path
+/// throughput). Also returns the rays traced. `None` when no sample was valid.
+#[allow(clippy::too_many_arguments)]
+fn gather(
+    rs: &RenderScene,
+    st: &RenderSettings,
+    opts: &OcvOptions,
+    scratch: &mut Scratch,
+    h: &Hit,
+    bsdf: &Bsdf,
+    frame: &Frame,
+    wo: Vec3,
+    depth: u32,
+    pixel: u32,
+    sample_index: u32,
+) -> (Option<Vec3>, u32) {
+    let lights = &rs.lights;
+    let m = scratch.components.len();
+    let mut rays = 0u32;
+    scratch.values.clear();
+    scratch.pdfs.clear();
+    for j in 0..m {
+        let (comp, n_j) = scratch.components[j];
+        let seed = st.seed ^ mix64(0x0cf5_0000 ^ (u64::from(depth) << 32) ^ j as u64);
+        for i in 0..n_j {
+            let index = sample_index.wrapping_mul(n_j as u32).wrapping_add(i as u32);
+            let mut sampler = Sampler::new(seed, pixel, index);
+            let u0 = sampler.next_1d();
+            let u = sampler.next_2d();
+            let row = scratch.pdfs.len();
+            scratch.pdfs.resize(row + m, 0.0);
+            let mut value = Vec3::ZERO;
+            match comp {
+                Component::Bsdf => match bsdf.sample(wo, u0, u) {
+                    None => scratch.pdfs[row + j] = 1.0, // null point of the BSDF
+                    Some(bs) => {
+                        scratch.pdfs[row + j] = f64::from(bs.pdf);
+                        let wi = frame.to_world(bs.wi);
+                        let ray = h.spawn_ray(wi);
+                        rays += 1;
+                        match rs.accel.intersect(&ray) {
+                            None => {
+                                let le = lights.env_radiance(wi);
+                                if let Some(l) = lights.env_light() {
+                                    value = bs.weight * bs.pdf * le;
+                                    if let Some(col) = scratch.column_of_light(l) {
+                                        scratch.pdfs[row + col] += light_pdf(
+                                            rs,
+                                            comp_of(scratch, col),
+                                            l,
+                                            lights.pdf_env(wi),
+                                        );
+                                    }
+                                }
+                            }
+                            Some(n) => {
+                                if let Some(l) = n.light {
+                                    value = bs.weight * bs.pdf * lights.area_radiance(l, n.ns, -wi);
+                                    if let Some(col) = scratch.column_of_light(l) {
+                                        scratch.pdfs[row + col] += light_pdf(
+                                            rs,
+                                            comp_of(scratch, col),
+                                            l,
+                                            lights.pdf_area(l, h.p, n.p, n.ns),
+                                        );
+                                    }
+                                }
+                            }
+                        }
+                    }
+                },
+                Component::Light(_) | Component::AllLights => {
+                    let ls = match comp {
+                        Component::Light(k) => lights.sample_light(k, h.p, u),
+                        _ => lights.sample(h.p, u0, u),
+                    };
+                    match ls {
+                        Some(ls) if ls.pdf > 0.0 && ls.pdf.is_finite() => {
+                            scratch.pdfs[row + j] = f64::from(ls.pdf);
+                            let (f, pdf_bsdf) = bsdf.eval_pdf(wo, frame.to_local(ls.wi));
+                            if f != Vec3::ZERO || pdf_bsdf > 0.0 {
+                                let shadow = if ls.dist.is_finite() {
+                                    h.spawn_ray_to(h.p + ls.wi * ls.dist)
+                                } else {
+                                    h.spawn_ray(ls.wi)
+                                };
+                                rays += 1;
+                                // Blocked: a point on the light the BSDF technique cannot
+                                // reach (p_BSDF = 0), value 0.
+                                if !rs.accel.occluded(shadow.o, shadow.d, shadow.t_max) {
+                                    value = f * ls.radiance;
+                                    if let Some(col) = scratch
+                                        .components
+                                        .iter()
+                                        .position(|c| c.0 == Component::Bsdf)
+                                    {
+                                        scratch.pdfs[row + col] = f64::from(pdf_bsdf);
+                                    }
+                                }
+                            }
+                        }
+                        _ => scratch.pdfs[row + j] = 1.0, // null point of this light component
+                    }
+                }
+            }
+            scratch.values.push(value.to_array().map(f64::from));
+        }
+    }
+    if scratch.values.is_empty() {
+        return (None, rays);
+    }
+    let est = if opts.optimize {
+        let o = estimators::ocv::OcvOptions {
+            lambda: opts.lambda,
+            penalize_intercept: opts.penalize_intercept,
+            ..estimators::ocv::OcvOptions::default()
+        };
+        estimators::ocv::ocv_estimate(&scratch.values, &scratch.pdfs, &scratch.mixture, &o)
+            .ok()
+            .map(|r| r.estimate)
+    } else {
+        plain_estimate(&scratch.values, &scratch.pdfs, &scratch.mixture)
+    };
+    let est = est.map(|e| Vec3::new(e[0] as f32, e[1] as f32, e[2] as f32));
+    (est.filter(|e| e.is_finite()), rays)
+}
+
+/// The component at pdf-table column `col`.
+#[inline]
+fn comp_of(scratch: &Scratch, col: usize) -> Component {
+    scratch.components[col].0
+}
+
+/// Density of component `comp` for a point on light `l` whose per-light solid-angle pdf
+/// (excluding selection) is `pdf`.
+#[inline]
+fn light_pdf(rs: &RenderScene, comp: Component, l: u32, pdf: f32) -> f64 {
+    match comp {
+        Component::AllLights => f64::from(rs.lights.selection_pmf(l) * pdf),
+        _ => f64::from(pdf),
+    }
+}
+
+/// Deterministic-mixture (balance heuristic) estimate `mean(f/p)` [Fan eq. 6].
+fn plain_estimate(values: &[[f64; 3]], pdfs: &[f64], mixture: &[f64]) -> Option<[f64; 3]> {
+    let m = mixture.len();
+    let mut sum = [0.0; 3];
+    let mut n = 0usize;
+    for (v, row) in values.iter().zip(pdfs.chunks_exact(m)) {
+        let p: f64 = row.iter().zip(mixture).map(|(a, b)| a * b).sum();
+        if p > 0.0 && p.is_finite() {
+            for c in 0..3 {
+                sum[c] += v[c] / p;
+            }
+            n += 1;
+        }
+    }
+    (n > 0).then(|| sum.map(|s| s / n as f64))
+}
+
+/// Traces one camera path with OCV direct lighting at each vertex (see the module docs).
+pub fn trace(
+    rs: &RenderScene,
+    st: &RenderSettings,
+    opts: &OcvOptions,
+    camera_ray: Ray,
+    sampler: &mut Sampler,
+    pixel: u32,
+    sample_index: u32,
+) -> PathSample {
+    let max_depth = st.max_depth_u32();
+    let lights = &rs.lights;
+    let mut out = PathSample {
+        rays: 1,
+        ..PathSample::default()
+    };
+    let mut ray = camera_ray;
+    let mut hit = rs.accel.intersect(&ray);
+    if st.hide_emitters {
+        let mut skipped = 0;
+        while let Some(h) = hit {
+            if h.light.is_none() || skipped >= MAX_HIDDEN_EMITTERS {
+                break;
+            }
+            ray = Ray {
+                o: h.offset_origin(ray.d),
+                d: ray.d,
+                t_max: ray.t_max - h.t,
+            };
+            hit = rs.accel.intersect(&ray);
+            out.rays += 1;
+            skipped += 1;
+        }
+    }
+    let mut radiance = Vec3::ZERO;
+    let Some(mut h) = hit else {
+        if !st.hide_emitters {
+            radiance += lights.env_radiance(ray.d);
+        }
+        out.radiance = radiance;
+        return out;
+    };
+    if let Some(l) = h.light {
+        radiance += lights.area_radiance(l, h.ns, -ray.d);
+    }
+    let mut scratch = Scratch::new(rs, opts);
+    let mut beta = Vec3::ONE;
+    let mut depth = 0u32;
+    loop {
+        let bsdf = rs.materials.bsdf(h.material, h.uv);
+        if depth == 0 {
+            out.albedo = bsdf.albedo();
+            out.normal = h.ns;
+        }
+        if depth.saturating_add(1) >= max_depth {
+            break;
+        }
+        let frame = Frame::from_normal(h.ns);
+        let wo = frame.to_local(-ray.d);
+        let gathered = !bsdf.is_delta() && !scratch.components.is_empty();
+        if gathered {
+            let (est, rays) = gather(
+                rs,
+                st,
+                opts,
+                &mut scratch,
+                &h,
+                &bsdf,
+                &frame,
+                wo,
+                depth,
+                pixel,
+                sample_index,
+            );
+            out.rays += rays;
+            if let Some(e) = est {
+                radiance += beta * e;
+            }
+        }
+
+        // ---- continuation: one BSDF sample, as in `path` ----
+        sampler.set_dimension(vertex_dimension(depth) + 3);
+        let u_lobe = sampler.next_1d();
+        let u_bsdf: Vec2 = sampler.next_2d();
+        let u_rr = sampler.next_1d();
+        let Some(bs) = bsdf.sample(wo, u_lobe, u_bsdf) else {
+            break;
+        };
+        let wi = frame.to_world(bs.wi);
+        beta *= bs.weight;
+        depth += 1;
+        let beta_max = beta.max_element();
+        if !(beta_max > 0.0 && beta.is_finite()) {
+            break;
+        }
+        if depth as i64 >= i64::from(st.rr_depth) {
+            let q = beta_max.min(0.95);
+            if u_rr < q {
+                beta /= q;
+            } else {
+                break;
+            }
+        }
+        // After a gather the emission reached by the continuation is already integrated;
+        // after a delta vertex it is counted here with weight 1.
+        let count_emission = !gathered;
+        if !count_emission && depth.saturating_add(1) >= max_depth {
+            // The next vertex would neither scatter nor count emission: no ray needed.
+            break;
+        }
+        ray = h.spawn_ray(wi);
+        out.rays += 1;
+        match rs.accel.intersect(&ray) {
+            None => {
+                if count_emission {
+                    radiance += beta * lights.env_radiance(wi);
+                }
+                break;
+            }
+            Some(n) => {
+                if count_emission && let Some(l) = n.light {
+                    radiance += beta * lights.area_radiance(l, n.ns, -wi);
+                }
+                h = n;
+            }
+        }
+    }
+    out.radiance = radiance;
+    out
+}
+
+/// One sample of pixel `(x, y)` with the `ocv` estimator.
+#[inline]
+pub fn sample_pixel(
+    rs: &RenderScene,
+    st: &RenderSettings,
+    opts: &OcvOptions,
+    x: u32,
+    y: u32,
+    sample_index: u32,
+) -> PathSample {
+    let pixel = y * rs.width + x;
+    let mut sampler = Sampler::new(st.seed, pixel, sample_index);
+    let u = sampler.next_2d();
+    let ray = rs.camera.ray(Vec2::new(x as f32 + u.x, y as f32 + u.y));
+    trace(rs, st, opts, ray, &mut sampler, pixel, sample_index)
+}
