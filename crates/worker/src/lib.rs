@@ -9,13 +9,15 @@
 //! 3. **Prepare** the job once: scene document and assets are fetched by content address,
 //!    verified against their SHA-256 and cached in memory; the `RenderScene` is cached per job.
 //! 4. **Render** on a blocking thread while a heartbeat task extends the lease every
-//!    `heartbeat_ms`. A heartbeat answered 409 means the lease was lost (expired and
+//!    `heartbeat_ms` (from the moment the lease arrives). Each slot renders one task at a
+//!    time and keeps one more lease in hand, fetched and prepared while the current one
+//!    renders, so lease and upload round trips overlap rendering. A heartbeat answered 409 means the lease was lost (expired and
 //!    re-leased, or the job was cancelled): the result is dropped, not uploaded.
 //! 5. **Upload** `PUT /v1/tasks/{id}/result?attempt=N`, retried on network errors (the
 //!    coordinator makes a repeated upload of an accepted attempt a no-op).
 //! 6. **Shutdown** (the future passed to [`run`] resolves, e.g. on SIGTERM/ctrl-c): no new
-//!    lease is taken; a task being rendered is finished and uploaded; a lease that arrives
-//!    after the signal is released at once.
+//!    lease is taken; a task being rendered is finished and uploaded; a lease in hand that
+//!    has not started rendering (or arrives after the signal) is released.
 //!
 //! # Layout
 //! - [`tile`]: [`tile::Prepared`] (scene + settings of a job), tile rendering, in-process job rendering.
@@ -35,7 +37,7 @@ use protocol::frame::TileHeader;
 use protocol::hash::sha256_hex;
 use protocol::lease::{LeaseRequest, RegisterRequest, RegisterResponse, TaskLease};
 use reqwest::StatusCode;
-use tokio::sync::{Mutex, watch};
+use tokio::sync::{Mutex, Semaphore, watch};
 
 use crate::tile::{Prepared, TaskError};
 
@@ -183,6 +185,15 @@ pub async fn run(
     })
 }
 
+/// Aborts a background task when dropped (heartbeats end with the task, however it ends).
+struct AbortOnDrop(tokio::task::JoinHandle<()>);
+
+impl Drop for AbortOnDrop {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
+}
+
 async fn error_text(resp: reqwest::Response) -> CallError {
     let status = resp.status();
     CallError::Status(status, resp.text().await.unwrap_or_default())
@@ -251,7 +262,12 @@ impl Inner {
         self.token.lock().await.clone()
     }
 
+    /// One slot: renders one task at a time and keeps **one more lease in hand** (fetched,
+    /// prepared and heartbeating while the current one renders), so lease and upload
+    /// latency overlap rendering instead of adding to it.
     async fn slot_loop(self: Arc<Self>) -> Result<(), WorkerError> {
+        let render_permit = Arc::new(Semaphore::new(1));
+        let mut tasks = tokio::task::JoinSet::new();
         let mut backoff = Duration::from_millis(100);
         while !self.stopping() {
             match self.lease().await {
@@ -261,7 +277,11 @@ impl Inner {
                         self.release(&lease).await;
                         break;
                     }
-                    self.process(lease).await;
+                    let (started_tx, started_rx) = tokio::sync::oneshot::channel();
+                    let (me, permit) = (self.clone(), render_permit.clone());
+                    tasks.spawn(async move { me.process(lease, permit, started_tx).await });
+                    // Lease the next task once this one is rendering (or over).
+                    let _ = started_rx.await;
                 }
                 Ok(None) => backoff = Duration::from_millis(100),
                 Err(CallError::Status(StatusCode::UNAUTHORIZED, _)) => {
@@ -276,7 +296,10 @@ impl Inner {
                     backoff = self.next_backoff(backoff);
                 }
             }
+            // Reap finished tasks so the set does not grow.
+            while tasks.try_join_next().is_some() {}
         }
+        while tasks.join_next().await.is_some() {}
         Ok(())
     }
 
@@ -368,37 +391,33 @@ impl Inner {
         Ok(p)
     }
 
+    /// Heartbeats (from receipt), prepares, waits for the slot's render permit, renders,
+    /// frees the permit, uploads. Signals `started` once it holds the permit (or gives up).
     #[tracing::instrument(skip_all, fields(task = l.task_id, attempt = l.attempt))]
-    async fn process(&self, l: TaskLease) {
+    async fn process(
+        self: Arc<Self>,
+        l: TaskLease,
+        permit: Arc<Semaphore>,
+        started: tokio::sync::oneshot::Sender<()>,
+    ) {
+        let lost = Arc::new(AtomicBool::new(false));
+        let _heartbeat = self.heartbeat(&l, lost.clone()).await;
         let prepared = match self.prepare(&l).await {
             Ok(p) => p,
             Err(e) => return self.fail(&l, &e).await,
         };
-        // Heartbeats while rendering.
-        let lost = Arc::new(AtomicBool::new(false));
-        let hb = {
-            let http = self.http.clone();
-            let url = self.url(&format!(
-                "/v1/tasks/{}/heartbeat?attempt={}",
-                l.task_id, l.attempt
-            ));
-            let token = self.token().await;
-            let period = Duration::from_millis(l.heartbeat_ms.max(50));
-            let lost = lost.clone();
-            tokio::spawn(async move {
-                loop {
-                    tokio::time::sleep(period).await;
-                    match http.post(&url).bearer_auth(&token).send().await {
-                        Ok(r) if r.status() == StatusCode::CONFLICT => {
-                            lost.store(true, Ordering::Relaxed);
-                            return;
-                        }
-                        Ok(_) => {}
-                        Err(e) => tracing::warn!(error = %e, "heartbeat failed"),
-                    }
-                }
-            })
+        let Ok(render_permit) = permit.acquire_owned().await else {
+            return;
         };
+        let _ = started.send(());
+        if self.stopping() {
+            // Shutdown before this prefetched task started: give it back.
+            return self.release(&l).await;
+        }
+        if lost.load(Ordering::Relaxed) {
+            self.counters.stale.fetch_add(1, Ordering::Relaxed);
+            return;
+        }
         let header = TileHeader {
             job_id: l.job_id,
             task_id: l.task_id,
@@ -408,7 +427,7 @@ impl Inner {
             sample_end: l.sample_end,
         };
         let rendered = tokio::task::spawn_blocking(move || prepared.render_task(header)).await;
-        hb.abort();
+        drop(render_permit);
         let result = match rendered {
             Ok(Ok(r)) => r,
             Ok(Err(e)) => return self.fail(&l, &e.to_string()).await,
@@ -420,6 +439,31 @@ impl Inner {
             return;
         }
         self.upload(&l, result.encode()).await;
+    }
+
+    /// Starts heartbeating `l` every `heartbeat_ms`; a 409 sets `lost`. Stops when the
+    /// returned guard is dropped.
+    async fn heartbeat(&self, l: &TaskLease, lost: Arc<AtomicBool>) -> AbortOnDrop {
+        let http = self.http.clone();
+        let url = self.url(&format!(
+            "/v1/tasks/{}/heartbeat?attempt={}",
+            l.task_id, l.attempt
+        ));
+        let token = self.token().await;
+        let period = Duration::from_millis(l.heartbeat_ms.max(50));
+        AbortOnDrop(tokio::spawn(async move {
+            loop {
+                tokio::time::sleep(period).await;
+                match http.post(&url).bearer_auth(&token).send().await {
+                    Ok(r) if r.status() == StatusCode::CONFLICT => {
+                        lost.store(true, Ordering::Relaxed);
+                        return;
+                    }
+                    Ok(_) => {}
+                    Err(e) => tracing::warn!(error = %e, "heartbeat failed"),
+                }
+            }
+        }))
     }
 
     async fn upload(&self, l: &TaskLease, body: Vec<u8>) {
