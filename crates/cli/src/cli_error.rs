@@ -4,7 +4,8 @@
 //! - a failed command prints **exactly one line** `error: <what>: <cause>: …` on stderr and
 //!   exits with status 1 ([`report`]);
 //! - a bad command line (unknown flag, malformed value, unknown estimator) prints one line
-//!   `error: …` on stderr and exits with status 2 ([`report_clap`]); `--help` and `--version`
+//!   `error: …` on stderr and exits with status 2 ([`report_clap`]; bad estimator options
+//!   found after parsing are reported by [`report`] with status 2 too); `--help` and `--version`
 //!   print normally and exit 0;
 //! - `cvfarm compare --max-rel-mse X` exits with status 3 when the image is worse than `X`
 //!   (see [`crate::compare_cmd`]).
@@ -30,6 +31,13 @@ fn squash(text: &str) -> String {
 /// Prints `error: …` (one line) and returns the failure exit status.
 pub fn report(e: &anyhow::Error) -> ExitCode {
     eprintln!("error: {}", one_line(e));
+    // A bad command line found after parsing (estimator options) is a usage error too.
+    if e.chain().any(|c| {
+        c.downcast_ref::<crate::estimator_opts::UsageError>()
+            .is_some()
+    }) {
+        return ExitCode::from(EXIT_USAGE);
+    }
     ExitCode::from(EXIT_FAILURE)
 }
 

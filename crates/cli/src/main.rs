@@ -6,6 +6,9 @@
 //! # Layout
 //! - [`render_cmd`]: `cvfarm render` — render a scene locally (embedded renderer) to EXR/PNG.
 //! - [`compare_cmd`]: `cvfarm compare` — error of a test image against a reference (relMSE, …).
+//! - [`bench_cmd`]: `cvfarm bench` — accuracy vs time of several estimators (CSV, markdown, SVG).
+//! - [`estimator_opts`]: `--estimator`, `--opt key=value`, `--estimator-json` → `Estimator`.
+//! - [`local_render`]: fixed-spp and time-budget local rendering shared by `render` and `bench`.
 //! - [`cli_error`]: how errors are reported (one line on stderr, exit status).
 //!
 //! Every flag can also be given as an environment variable (`CVFARM_SPP`, `CVFARM_SEED`, …;
@@ -13,8 +16,11 @@
 
 #![deny(missing_docs)]
 
+mod bench_cmd;
 mod cli_error;
 mod compare_cmd;
+mod estimator_opts;
+mod local_render;
 mod render_cmd;
 
 use std::process::ExitCode;
@@ -37,6 +43,8 @@ enum Command {
     Render(render_cmd::RenderArgs),
     /// Compare a test EXR with a reference EXR: relMSE (ε = 0.01), MSE, mean ratio, NaN/Inf.
     Compare(compare_cmd::CompareArgs),
+    /// Benchmark estimators against `path`: relMSE vs time, equal-time and equal-sample speedups.
+    Bench(bench_cmd::BenchArgs),
 }
 
 fn main() -> ExitCode {
@@ -47,6 +55,7 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Render(args) => render_cmd::run(&args),
         Command::Compare(args) => compare_cmd::run(&args),
+        Command::Bench(args) => bench_cmd::run(&args),
     };
     match result {
         Ok(code) => code,

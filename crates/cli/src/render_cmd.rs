@@ -15,7 +15,10 @@
 //! | `--threads T` | `CVFARM_THREADS` | 0 = all cores | render threads |
 //! | `--res WxH` | `CVFARM_RES` | scene's | override the film size (`fov` stays along the scene's `fov_axis`) |
 //! | `-D, --define K=V` | `CVFARM_DEFINES` (comma-separated) | none | value of a Mitsuba XML `$K` parameter |
-//! | `--estimator E` | `CVFARM_ESTIMATOR` | `path` | estimator (`path`) |
+//! | `--estimator E` | `CVFARM_ESTIMATOR` | `path` | estimator: `path`, `ocv`, `cms`, `per_light_cv`, `optimal_mis` |
+//! | `--opt K=V` | — | none | an estimator option (repeatable), e.g. `--opt spe=32`; unknown names are errors listing the valid ones |
+//! | `--estimator-json J` | `CVFARM_ESTIMATOR_JSON` | none | the estimator as JSON (`{"kind":"ocv","spe":32}`) or `@file.json` |
+//! | `--time-budget S` | `CVFARM_TIME_BUDGET` | none | render sample batches until S seconds are spent (instead of `--spp`) |
 //! | `--mis H` | `CVFARM_MIS` | `power` | MIS heuristic: `power` or `balance` |
 //! | `--light-selection L` | `CVFARM_LIGHT_SELECTION` | `uniform` | NEE light choice: `uniform` or `power` |
 //! | `--hide-emitters` | `CVFARM_HIDE_EMITTERS` | scene's | directly visible emitters are black |
@@ -29,6 +32,10 @@
 //! rendered scenes/cornell-box/scene.json: 256x256, 64 spp (path, max_depth 5) in 2.41 s: 1.74 M samples/s, 6.9 M rays/s -> out/cbox.exr
 //! ```
 //! The progress bar (stderr) is shown only when stderr is a terminal.
+//!
+//! Estimator options are those of the option structs in `render::integrator` (see
+//! [`crate::estimator_opts`]); the stats JSON records the estimator with all its options and
+//! the estimator's report, and the EXR gets the extra layers the estimator provides.
 
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -38,10 +45,13 @@ use std::str::FromStr;
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use indicatif::{ProgressBar, ProgressState, ProgressStyle};
-use render::integrator::{Estimator, MisHeuristic, RenderScene, RenderSettings};
+use render::integrator::{MisHeuristic, RenderScene, RenderSettings};
 use render::light::LightSelection;
-use render::tile::{RenderOptions, render_image};
+use render::tile::RenderOptions;
 use serde_json::json;
+
+use crate::estimator_opts;
+use crate::local_render;
 
 /// Largest accepted film edge (pixels) for `--res`.
 pub const MAX_RES: u32 = 1 << 15;
@@ -77,9 +87,19 @@ pub struct RenderArgs {
         allow_hyphen_values = true
     )]
     pub res: Option<Resolution>,
-    /// Estimator.
-    #[arg(long, env = "CVFARM_ESTIMATOR", value_enum, default_value_t = EstimatorArg::Path)]
-    pub estimator: EstimatorArg,
+    /// Estimator [default: path, or the kind of --estimator-json].
+    #[arg(long, env = "CVFARM_ESTIMATOR", value_enum)]
+    pub estimator: Option<EstimatorArg>,
+    /// Estimator option KEY=VALUE (repeatable), e.g. --opt spe=32.
+    #[arg(long = "opt", value_name = "KEY=VALUE")]
+    pub opts: Vec<String>,
+    /// Estimator as JSON ({"kind":"ocv","spe":32}) or @file.json.
+    #[arg(long, env = "CVFARM_ESTIMATOR_JSON", value_name = "JSON|@FILE")]
+    pub estimator_json: Option<String>,
+    /// Render until this many seconds are spent (sample batches) instead of a fixed --spp.
+    #[arg(long, env = "CVFARM_TIME_BUDGET", value_name = "SECONDS", conflicts_with = "spp",
+          value_parser = parse_budget)]
+    pub time_budget: Option<f64>,
     /// MIS heuristic for NEE vs BSDF sampling.
     #[arg(long, env = "CVFARM_MIS", value_enum, default_value_t = MisArg::Power)]
     pub mis: MisArg,
@@ -113,24 +133,41 @@ pub struct RenderArgs {
     pub stats: Option<PathBuf>,
 }
 
-/// The `--estimator` values (grows with `render::integrator::Estimator`).
+/// The `--estimator` values (the `kind`s of `render::integrator::Estimator`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub enum EstimatorArg {
     /// NEE + BSDF MIS path tracer (the baseline).
     Path,
+    /// Optimizing control variates for the direct-lighting gather (Fan 2006).
+    Ocv,
+    /// Controlled mixture sampling (Hua 2023).
+    Cms,
+    /// Per-cell per-light CV (Vévoda-style, Hua §7.2).
+    #[value(name = "per_light_cv", alias = "per-light-cv")]
+    PerLightCv,
+    /// Optimal MIS per pixel (Kondapaneni 2019, Hua §7.4).
+    #[value(name = "optimal_mis", alias = "optimal-mis")]
+    OptimalMis,
 }
 
 impl EstimatorArg {
-    fn estimator(self) -> Estimator {
-        match self {
-            EstimatorArg::Path => Estimator::Path,
-        }
-    }
-
-    fn name(self) -> &'static str {
+    /// The estimator's `kind`.
+    pub fn name(self) -> &'static str {
         match self {
             EstimatorArg::Path => "path",
+            EstimatorArg::Ocv => "ocv",
+            EstimatorArg::Cms => "cms",
+            EstimatorArg::PerLightCv => "per_light_cv",
+            EstimatorArg::OptimalMis => "optimal_mis",
         }
+    }
+}
+
+/// Parses a positive, finite number of seconds.
+pub fn parse_budget(s: &str) -> Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(v) if v > 0.0 && v.is_finite() => Ok(v),
+        _ => Err(format!("expected a positive number of seconds, got `{s}`")),
     }
 }
 
@@ -199,7 +236,11 @@ pub fn settings(scene: &scene::Scene, args: &RenderArgs) -> Result<RenderSetting
             LightSelectionArg::Uniform => LightSelection::Uniform,
             LightSelectionArg::Power => LightSelection::Power,
         },
-        estimator: args.estimator.estimator(),
+        estimator: estimator_opts::build(
+            args.estimator.map(EstimatorArg::name),
+            args.estimator_json.as_deref(),
+            &args.opts,
+        )?,
     };
     st.validate()?;
     Ok(st)
@@ -209,9 +250,17 @@ pub fn settings(scene: &scene::Scene, args: &RenderArgs) -> Result<RenderSetting
 /// (so that `fov_axis` is resolved for the new size, as Mitsuba does) and loads its assets.
 /// Load warnings are printed on stderr.
 pub fn load_scene(args: &RenderArgs) -> Result<scene::Scene> {
-    let path = &args.scene;
-    let mut params = Vec::with_capacity(args.define.len());
-    for d in &args.define {
+    load_scene_file(&args.scene, &args.define, args.res)
+}
+
+/// [`load_scene`] from its parts: scene path, `--define`s, `--res`.
+pub fn load_scene_file(
+    path: &Path,
+    define: &[String],
+    res: Option<Resolution>,
+) -> Result<scene::Scene> {
+    let mut params = Vec::with_capacity(define.len());
+    for d in define {
         let (k, v) = d
             .split_once('=')
             .with_context(|| format!("--define `{d}`: expected KEY=VALUE"))?;
@@ -219,7 +268,7 @@ pub fn load_scene(args: &RenderArgs) -> Result<scene::Scene> {
     }
     let (mut desc, mut warnings) = scene::read_desc_file(path, &params)
         .with_context(|| format!("loading {}", path.display()))?;
-    if let Some(res) = args.res {
+    if let Some(res) = res {
         desc.film = scene::desc::FilmDesc {
             width: res.width,
             height: res.height,
@@ -296,7 +345,10 @@ pub fn run(args: &RenderArgs) -> Result<ExitCode> {
         .with_context(|| format!("preparing {}", args.scene.display()))?;
     let (width, height) = (rs.width, rs.height);
 
-    let total = u64::from(width) * u64::from(height) * u64::from(st.spp);
+    let total = match args.time_budget {
+        Some(b) => (b * 1e3) as u64,
+        None => u64::from(width) * u64::from(height) * u64::from(st.spp),
+    };
     let bar = if std::io::stderr().is_terminal() {
         let bar = ProgressBar::new(total);
         let style = ProgressStyle::with_template(
@@ -317,11 +369,20 @@ pub fn run(args: &RenderArgs) -> Result<ExitCode> {
         ProgressBar::hidden()
     };
     let progress = |done: u64, _total: u64| bar.set_position(done);
-    let (film, stats) = render_image(&rs, &st, &options, &progress)
-        .with_context(|| format!("rendering {}", args.scene.display()))?;
+    let rendered = match args.time_budget {
+        Some(budget) => local_render::render_budget(&rs, &st, &options, budget, &progress),
+        None => local_render::render_spp(&rs, &st, &options, &progress),
+    }
+    .with_context(|| format!("rendering {}", args.scene.display()))?;
     bar.finish_and_clear();
+    let (film, stats) = (&rendered.film, rendered.stats);
+    let st = RenderSettings {
+        spp: rendered.spp,
+        ..st
+    };
+    let kind = estimator_opts::kind_of(&st.estimator);
 
-    let layers: Vec<imageio::RgbLayer> = film
+    let mut layers: Vec<imageio::RgbLayer> = film
         .layers()
         .into_iter()
         .map(|l| imageio::RgbLayer {
@@ -329,6 +390,7 @@ pub fn run(args: &RenderArgs) -> Result<ExitCode> {
             data: l.data,
         })
         .collect();
+    layers.extend(rendered.extra_layers.iter().cloned());
     imageio::write_exr(&args.output, width, height, &layers)
         .with_context(|| format!("writing {}", args.output.display()))?;
     if let Some(png) = &args.png {
@@ -349,7 +411,10 @@ pub fn run(args: &RenderArgs) -> Result<ExitCode> {
             "seed": st.seed,
             "max_depth": st.max_depth,
             "rr_depth": st.rr_depth,
-            "estimator": args.estimator.name(),
+            "estimator": kind,
+            "estimator_options": serde_json::to_value(st.estimator).unwrap_or_default(),
+            "estimator_report": rendered.report.clone().unwrap_or_default(),
+            "time_budget": args.time_budget,
             "threads": args.threads,
             "tile_size": args.tile_size,
             "samples": stats.samples,
@@ -368,7 +433,7 @@ pub fn run(args: &RenderArgs) -> Result<ExitCode> {
         "rendered {}: {width}x{height}, {} spp ({}, max_depth {}) in {:.2} s: {}samples/s, {}rays/s, mean RGB [{:.4}, {:.4}, {:.4}]{} -> {}",
         args.scene.display(),
         st.spp,
-        args.estimator.name(),
+        kind,
         st.max_depth,
         stats.seconds,
         si(samples_per_s),

@@ -1,0 +1,574 @@
+//! `cvfarm bench SCENE --estimators path,ocv,cms --reference REF.exr --out DIR`: accuracy vs
+//! time of several estimators on one scene (DESIGN §6, the layout of [Hua Table 1]).
+//!
+//! Each estimator renders the scene at a geometric series of sample counts (1, 2, 4, … spp,
+//! i.e. roughly doubling time budgets; or `--spp-series`) until its next render would push
+//! its total past `--max-seconds`. Every run records `(spp, seconds, relMSE, MSE)`; seconds
+//! are the wall time of rendering (scene preparation excluded, it is the same for all).
+//! Without `--reference` the error is estimated from the per-pixel variance of the mean
+//! (`estimators::metrics::estimated_rel_mse`; exact in expectation for unbiased estimators).
+//!
+//! Outputs in `--out DIR`:
+//! - `bench.csv`: `estimator,spp,seconds,relmse,mse`, one row per run;
+//! - `bench.md`: per estimator vs `path` — **equal-time speedup** `relMSE_path(t)/relMSE_X(t)`
+//!   at `t` = the smaller of both longest run times (log-log interpolation of the series,
+//!   extrapolated along the Monte Carlo rate `1/t`), **equal-sample speedup**
+//!   `relMSE_path(s)/relMSE_X(s)` at the largest common spp `s`, and **time overhead**
+//!   `t_X(s)/t_path(s) − 1`; then the raw series;
+//! - `bench.svg`: relMSE vs seconds, log-log, one line per estimator.
+//!
+//! | flag | default | meaning |
+//! |---|---|---|
+//! | `--estimators LIST` | `path,cms` | comma-separated kinds; options as `ocv:spe=32:lambda=1`; `path` is always run (the baseline) |
+//! | `--reference F` | none | reference EXR (e.g. `cvfarm render --spp 4096`); else variance-based error |
+//! | `--max-depth D` | scene's | path length |
+//! | `--out DIR` | `bench` | output directory |
+//! | `--max-seconds S` | 60 | render-time budget per estimator (the series stops before exceeding it) |
+//! | `--spp-series LIST` | 1,2,4,… | explicit sample counts |
+//! | `--seed`, `--threads`, `--res`, `--tile-size`, `-D` | as `render` | |
+//!
+//! ```text
+//! $ cvfarm bench scenes/checkers/scene.json --estimators path,ocv:spe=64 --reference ref.exr --out docs/bench/checkers_d2
+//! ```
+
+use std::fmt::Write as _;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use render::integrator::{Estimator, RenderScene, RenderSettings};
+use render::tile::RenderOptions;
+
+use crate::estimator_opts::{self, UsageError};
+use crate::local_render;
+use crate::render_cmd::{Resolution, load_scene_file};
+
+/// Arguments of `cvfarm bench`.
+#[derive(Debug, Args)]
+pub struct BenchArgs {
+    /// Scene file: native JSON (.json) or Mitsuba 3 XML (.xml).
+    pub scene: PathBuf,
+    /// Estimators to compare (comma-separated; `kind:key=value:…` sets options).
+    #[arg(long, value_delimiter = ',', default_value = "path,cms")]
+    pub estimators: Vec<String>,
+    /// Reference image (EXR); without it the error is estimated from the pixel variance.
+    #[arg(long)]
+    pub reference: Option<PathBuf>,
+    /// Max path segments incl. the camera ray [default: the scene's].
+    #[arg(long, allow_negative_numbers = true)]
+    pub max_depth: Option<i32>,
+    /// Output directory for bench.csv, bench.md, bench.svg.
+    #[arg(long, default_value = "bench")]
+    pub out: PathBuf,
+    /// Render-time budget per estimator in seconds.
+    #[arg(long, default_value_t = 60.0, value_parser = crate::render_cmd::parse_budget)]
+    pub max_seconds: f64,
+    /// Explicit sample counts (comma-separated) instead of 1, 2, 4, ….
+    #[arg(long, value_delimiter = ',', value_parser = clap::value_parser!(u32).range(1..))]
+    pub spp_series: Vec<u32>,
+    /// Sampler seed.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Render threads (0 = all cores).
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
+    /// Film size override, e.g. 160x120.
+    #[arg(long, value_name = "WxH")]
+    pub res: Option<Resolution>,
+    /// Tile edge in pixels.
+    #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u32).range(1..=4096))]
+    pub tile_size: u32,
+    /// Value for a Mitsuba XML `$parameter` (repeatable).
+    #[arg(short = 'D', long, value_name = "KEY=VALUE")]
+    pub define: Vec<String>,
+}
+
+/// One render of the series.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Run {
+    /// Samples per pixel.
+    pub spp: u32,
+    /// Render wall seconds.
+    pub seconds: f64,
+    /// relMSE (ε = 0.01) against the reference, or estimated from variance.
+    pub relmse: f64,
+    /// MSE (or mean variance of the mean without a reference).
+    pub mse: f64,
+}
+
+/// An estimator's series.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Series {
+    /// Label (the `--estimators` item).
+    pub label: String,
+    /// Runs in increasing spp.
+    pub runs: Vec<Run>,
+}
+
+/// Parses one `--estimators` item `kind[:key=value…]`.
+fn parse_item(item: &str) -> Result<Estimator, UsageError> {
+    let mut parts = item.trim().split(':');
+    let kind = parts.next().unwrap_or_default().trim();
+    let opts: Vec<String> = parts.map(str::to_string).collect();
+    estimator_opts::build(Some(kind), None, &opts)
+        .map_err(|e| UsageError(format!("--estimators `{item}`: {e}")))
+}
+
+/// relMSE at time `t` by log-log interpolation of `runs`, extrapolated with slope −1.
+pub fn relmse_at(runs: &[Run], t: f64) -> Option<f64> {
+    let pts: Vec<(f64, f64)> = runs
+        .iter()
+        .filter(|r| r.seconds > 0.0 && r.relmse > 0.0 && r.relmse.is_finite())
+        .map(|r| (r.seconds.ln(), r.relmse.ln()))
+        .collect();
+    let (first, last) = (pts.first()?, pts.last()?);
+    let lt = t.ln();
+    if lt <= first.0 {
+        return Some((first.1 - (lt - first.0)).exp());
+    }
+    if lt >= last.0 {
+        return Some((last.1 - (lt - last.0)).exp());
+    }
+    for w in pts.windows(2) {
+        let ((t0, e0), (t1, e1)) = (w[0], w[1]);
+        if lt >= t0 && lt <= t1 {
+            let f = if t1 > t0 { (lt - t0) / (t1 - t0) } else { 0.0 };
+            return Some((e0 + f * (e1 - e0)).exp());
+        }
+    }
+    None
+}
+
+/// The comparison of one series with the baseline.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Speedups {
+    /// relMSE_base / relMSE_x at equal time.
+    pub equal_time: f64,
+    /// relMSE_base / relMSE_x at the largest common spp.
+    pub equal_sample: f64,
+    /// The spp of the equal-sample comparison.
+    pub common_spp: u32,
+    /// t_x / t_base − 1 at that spp.
+    pub overhead: f64,
+}
+
+/// Compares `x` with the baseline `base`.
+pub fn speedups(base: &Series, x: &Series) -> Option<Speedups> {
+    let t = base.runs.last()?.seconds.min(x.runs.last()?.seconds);
+    let equal_time = relmse_at(&base.runs, t)? / relmse_at(&x.runs, t)?;
+    let (b, r) = x
+        .runs
+        .iter()
+        .rev()
+        .find_map(|r| base.runs.iter().find(|b| b.spp == r.spp).map(|b| (b, r)))?;
+    Some(Speedups {
+        equal_time,
+        equal_sample: b.relmse / r.relmse,
+        common_spp: r.spp,
+        overhead: r.seconds / b.seconds - 1.0,
+    })
+}
+
+/// The CSV text.
+pub fn csv(series: &[Series]) -> String {
+    let mut s = String::from("estimator,spp,seconds,relmse,mse\n");
+    for se in series {
+        for r in &se.runs {
+            let _ = writeln!(
+                s,
+                "{},{},{:.6},{:.6e},{:.6e}",
+                se.label, r.spp, r.seconds, r.relmse, r.mse
+            );
+        }
+    }
+    s
+}
+
+/// The markdown report.
+pub fn markdown(title: &str, notes: &[String], series: &[Series]) -> String {
+    let mut s = format!("# {title}\n\n");
+    for n in notes {
+        let _ = writeln!(s, "- {n}");
+    }
+    s.push_str(
+        "\n| estimator | equal-time speedup | equal-sample speedup (spp) | time overhead | relMSE (longest run) | seconds | spp |\n|---|---|---|---|---|---|---|\n",
+    );
+    let base = &series[0];
+    for se in series {
+        let last = se.runs.last();
+        let (rel, secs, spp) =
+            last.map_or((f64::NAN, f64::NAN, 0), |r| (r.relmse, r.seconds, r.spp));
+        let cols = if std::ptr::eq(se, base) {
+            "1.00× | 1.00× | +0.0 %".to_string()
+        } else {
+            match speedups(base, se) {
+                Some(sp) => format!(
+                    "{:.2}× | {:.2}× ({}) | {:+.1} %",
+                    sp.equal_time,
+                    sp.equal_sample,
+                    sp.common_spp,
+                    sp.overhead * 100.0
+                ),
+                None => "– | – | –".to_string(),
+            }
+        };
+        let _ = writeln!(
+            s,
+            "| {} | {cols} | {rel:.4e} | {secs:.2} | {spp} |",
+            se.label
+        );
+    }
+    s.push_str(
+        "\n## Series\n\n| estimator | spp | seconds | relMSE | MSE |\n|---|---|---|---|---|\n",
+    );
+    for se in series {
+        for r in &se.runs {
+            let _ = writeln!(
+                s,
+                "| {} | {} | {:.3} | {:.4e} | {:.4e} |",
+                se.label, r.spp, r.seconds, r.relmse, r.mse
+            );
+        }
+    }
+    s.push_str("\n![relMSE vs time](bench.svg)\n");
+    s
+}
+
+/// XML-escapes text for the SVG.
+fn esc(t: &str) -> String {
+    t.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+}
+
+/// The relMSE-vs-seconds log-log plot, written by hand.
+pub fn svg(title: &str, series: &[Series]) -> String {
+    const COLOURS: [&str; 6] = [
+        "#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b",
+    ];
+    let (w, h) = (640.0f64, 420.0f64);
+    let (l, r, t, b) = (70.0, 160.0, 40.0, 50.0);
+    let pts = || {
+        series
+            .iter()
+            .flat_map(|s| s.runs.iter())
+            .filter(|r| r.seconds > 0.0 && r.relmse > 0.0 && r.relmse.is_finite())
+    };
+    let dec = |v: f64, up: bool| {
+        let x = v.log10();
+        if up { x.ceil() } else { x.floor() }
+    };
+    let (mut x0, mut x1) = (f64::INFINITY, f64::NEG_INFINITY);
+    let (mut y0, mut y1) = (f64::INFINITY, f64::NEG_INFINITY);
+    for p in pts() {
+        x0 = x0.min(p.seconds);
+        x1 = x1.max(p.seconds);
+        y0 = y0.min(p.relmse);
+        y1 = y1.max(p.relmse);
+    }
+    if !x0.is_finite() {
+        (x0, x1, y0, y1) = (0.1, 1.0, 0.1, 1.0);
+    }
+    let (lx0, mut lx1) = (dec(x0, false), dec(x1, true));
+    let (ly0, mut ly1) = (dec(y0, false), dec(y1, true));
+    if lx1 <= lx0 {
+        lx1 = lx0 + 1.0;
+    }
+    if ly1 <= ly0 {
+        ly1 = ly0 + 1.0;
+    }
+    let px = |v: f64| l + (v.log10() - lx0) / (lx1 - lx0) * (w - l - r);
+    let py = |v: f64| t + (ly1 - v.log10()) / (ly1 - ly0) * (h - t - b);
+    let mut s = format!(
+        "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{w}\" height=\"{h}\" viewBox=\"0 0 {w} {h}\" font-family=\"sans-serif\" font-size=\"12\">\n<rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n<text x=\"{}\" y=\"22\" text-anchor=\"middle\" font-size=\"14\">{}</text>\n",
+        (l + w - r) / 2.0,
+        esc(title)
+    );
+    // Decade grid and labels.
+    let mut e = lx0;
+    while e <= lx1 + 1e-9 {
+        let x = px(10f64.powf(e));
+        let _ = writeln!(
+            s,
+            "<line x1=\"{x:.1}\" y1=\"{t}\" x2=\"{x:.1}\" y2=\"{:.1}\" stroke=\"#ddd\"/><text x=\"{x:.1}\" y=\"{:.1}\" text-anchor=\"middle\">1e{e}</text>",
+            h - b,
+            h - b + 16.0
+        );
+        e += 1.0;
+    }
+    let mut e = ly0;
+    while e <= ly1 + 1e-9 {
+        let y = py(10f64.powf(e));
+        let _ = writeln!(
+            s,
+            "<line x1=\"{l}\" y1=\"{y:.1}\" x2=\"{:.1}\" y2=\"{y:.1}\" stroke=\"#ddd\"/><text x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"end\">1e{e}</text>",
+            w - r,
+            l - 6.0,
+            y + 4.0
+        );
+        e += 1.0;
+    }
+    let _ = writeln!(
+        s,
+        "<rect x=\"{l}\" y=\"{t}\" width=\"{:.1}\" height=\"{:.1}\" fill=\"none\" stroke=\"black\"/>\n<text x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"middle\">render time (s)</text>\n<text x=\"16\" y=\"{:.1}\" text-anchor=\"middle\" transform=\"rotate(-90 16 {:.1})\">relMSE</text>",
+        w - l - r,
+        h - t - b,
+        (l + w - r) / 2.0,
+        h - 12.0,
+        (t + h - b) / 2.0,
+        (t + h - b) / 2.0
+    );
+    for (i, se) in series.iter().enumerate() {
+        let c = COLOURS[i % COLOURS.len()];
+        let p: Vec<(f64, f64)> = se
+            .runs
+            .iter()
+            .filter(|r| r.seconds > 0.0 && r.relmse > 0.0 && r.relmse.is_finite())
+            .map(|r| (px(r.seconds), py(r.relmse)))
+            .collect();
+        let line: Vec<String> = p.iter().map(|(x, y)| format!("{x:.1},{y:.1}")).collect();
+        let _ = writeln!(
+            s,
+            "<polyline fill=\"none\" stroke=\"{c}\" stroke-width=\"2\" points=\"{}\"/>",
+            line.join(" ")
+        );
+        for (x, y) in &p {
+            let _ = writeln!(
+                s,
+                "<circle cx=\"{x:.1}\" cy=\"{y:.1}\" r=\"3\" fill=\"{c}\"/>"
+            );
+        }
+        let ly = t + 10.0 + 18.0 * i as f64;
+        let _ = writeln!(
+            s,
+            "<line x1=\"{:.1}\" y1=\"{ly:.1}\" x2=\"{:.1}\" y2=\"{ly:.1}\" stroke=\"{c}\" stroke-width=\"2\"/><text x=\"{:.1}\" y=\"{:.1}\">{}</text>",
+            w - r + 10.0,
+            w - r + 30.0,
+            w - r + 35.0,
+            ly + 4.0,
+            esc(&se.label)
+        );
+    }
+    s.push_str("</svg>\n");
+    s
+}
+
+/// Runs `cvfarm bench`.
+pub fn run(args: &BenchArgs) -> Result<ExitCode> {
+    let mut items: Vec<(String, Estimator)> = Vec::new();
+    for it in &args.estimators {
+        let it = it.trim();
+        if it.is_empty() {
+            continue;
+        }
+        items.push((it.to_string(), parse_item(it)?));
+    }
+    if !items.iter().any(|(_, e)| *e == Estimator::Path) {
+        items.insert(0, ("path".into(), Estimator::Path));
+    } else if let Some(i) = items.iter().position(|(_, e)| *e == Estimator::Path) {
+        let p = items.remove(i);
+        items.insert(0, p);
+    }
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating directory {}", args.out.display()))?;
+    let mut scene = load_scene_file(&args.scene, &args.define, args.res)?;
+    let base = RenderSettings::from_scene(&scene);
+    let st0 = RenderSettings {
+        seed: args.seed,
+        max_depth: args.max_depth.unwrap_or(base.max_depth),
+        ..base
+    };
+    st0.validate()?;
+    scene.integrator.max_depth = st0.max_depth;
+    let rs = RenderScene::new(&scene, &st0)
+        .with_context(|| format!("preparing {}", args.scene.display()))?;
+    let reference = match &args.reference {
+        Some(p) => {
+            let img = imageio::read_exr(p).with_context(|| format!("reading {}", p.display()))?;
+            if (img.width, img.height) != (rs.width, rs.height) {
+                bail!(
+                    "reference {} is {}x{}, the render is {}x{}",
+                    p.display(),
+                    img.width,
+                    img.height,
+                    rs.width,
+                    rs.height
+                );
+            }
+            let layer = img.main_layer().context("reference has no colour layer")?;
+            Some(layer.data.iter().flatten().copied().collect::<Vec<f32>>())
+        }
+        None => None,
+    };
+    let options = RenderOptions {
+        tile_size: args.tile_size,
+        threads: args.threads,
+    };
+    let series_spp: Vec<u32> = if args.spp_series.is_empty() {
+        (0..16).map(|k| 1u32 << k).collect()
+    } else {
+        args.spp_series.clone()
+    };
+    let mut all = Vec::new();
+    for (label, est) in &items {
+        let st = RenderSettings {
+            estimator: *est,
+            ..st0
+        };
+        let mut runs: Vec<Run> = Vec::new();
+        let mut total = 0.0;
+        for &spp in &series_spp {
+            if let Some(last) = runs.last() {
+                let predicted = last.seconds * f64::from(spp) / f64::from(last.spp);
+                if total + predicted > args.max_seconds {
+                    break;
+                }
+            }
+            let r =
+                local_render::render_spp(&rs, &RenderSettings { spp, ..st }, &options, &|_, _| {})
+                    .with_context(|| format!("rendering {label} at {spp} spp"))?;
+            let mean: Vec<f32> = r.film.mean_image().into_iter().flatten().collect();
+            let (relmse, mse) = match &reference {
+                Some(rf) => {
+                    let e = estimators::metrics::compare(&mean, rf);
+                    (e.rel_mse, e.mse)
+                }
+                None => {
+                    let var: Vec<f32> = r.film.variance_image().into_iter().flatten().collect();
+                    let rel =
+                        estimators::metrics::estimated_rel_mse(&mean, &var).unwrap_or(f64::NAN);
+                    let mse =
+                        var.iter().map(|v| f64::from(*v)).sum::<f64>() / var.len().max(1) as f64;
+                    (rel, mse)
+                }
+            };
+            total += r.stats.seconds;
+            eprintln!(
+                "bench {label}: {spp} spp in {:.2} s, relMSE {relmse:.3e}",
+                r.stats.seconds
+            );
+            runs.push(Run {
+                spp,
+                seconds: r.stats.seconds,
+                relmse,
+                mse,
+            });
+        }
+        all.push(Series {
+            label: label.clone(),
+            runs,
+        });
+    }
+    let name = args
+        .scene
+        .parent()
+        .and_then(|d| d.file_name())
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| args.scene.display().to_string());
+    let title = format!("{name}, max_depth {}", st0.max_depth);
+    let notes = vec![
+        format!(
+            "scene `{}`, {}x{}, max_depth {}, seed {}",
+            args.scene.display(),
+            rs.width,
+            rs.height,
+            st0.max_depth,
+            args.seed
+        ),
+        match &args.reference {
+            Some(p) => format!("error against the reference `{}` (relMSE ε = 0.01)", p.display()),
+            None => "no reference: relMSE estimated from the per-pixel variance of the mean".into(),
+        },
+        "seconds = render wall time (scene preparation excluded); measured on a loaded, shared 2-core machine (other builds running), so times carry several % noise".into(),
+        format!(
+            "rerun: `cvfarm bench {} --estimators {} --max-depth {} --max-seconds {}{}`",
+            args.scene.display(),
+            items.iter().map(|i| i.0.as_str()).collect::<Vec<_>>().join(","),
+            st0.max_depth,
+            args.max_seconds,
+            args.reference
+                .as_ref()
+                .map(|p| format!(" --reference {}", p.display()))
+                .unwrap_or_default()
+        ),
+    ];
+    let write = |file: &str, text: String| -> Result<()> {
+        let p = args.out.join(file);
+        std::fs::write(&p, text).with_context(|| format!("writing {}", p.display()))
+    };
+    write("bench.csv", csv(&all))?;
+    write("bench.md", markdown(&title, &notes, &all))?;
+    write("bench.svg", svg(&title, &all))?;
+    for se in all.iter().skip(1) {
+        if let Some(sp) = speedups(&all[0], se) {
+            println!(
+                "{}: equal-time speedup {:.2}x, equal-sample speedup {:.2}x at {} spp, time overhead {:+.1} %",
+                se.label,
+                sp.equal_time,
+                sp.equal_sample,
+                sp.common_spp,
+                sp.overhead * 100.0
+            );
+        }
+    }
+    println!("wrote {}/bench.{{csv,md,svg}}", args.out.display());
+    Ok(ExitCode::SUCCESS)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn run(spp: u32, seconds: f64, relmse: f64) -> Run {
+        Run {
+            spp,
+            seconds,
+            relmse,
+            mse: relmse,
+        }
+    }
+
+    #[test]
+    fn halved_error_at_equal_time_is_2x_and_overhead_is_time_ratio() {
+        let base = Series {
+            label: "path".into(),
+            runs: vec![run(1, 1.0, 0.4), run(2, 2.0, 0.2), run(4, 4.0, 0.1)],
+        };
+        let x = Series {
+            label: "x".into(),
+            runs: vec![run(1, 1.1, 0.1), run(2, 2.2, 0.05)],
+        };
+        let sp = speedups(&base, &x).unwrap();
+        // At t = 2.2: path ≈ 0.2 · 2/2.2, x = 0.05.
+        assert!(
+            (sp.equal_time - 0.2 * 2.0 / 2.2 / 0.05).abs() < 1e-9,
+            "{sp:?}"
+        );
+        assert_eq!(sp.common_spp, 2);
+        assert!((sp.equal_sample - 4.0).abs() < 1e-12);
+        assert!((sp.overhead - 0.1).abs() < 1e-12);
+    }
+
+    #[test]
+    fn csv_md_svg_have_every_run() {
+        let s = vec![
+            Series {
+                label: "path".into(),
+                runs: vec![run(1, 0.5, 0.3), run(2, 1.0, 0.15)],
+            },
+            Series {
+                label: "ocv:spe=8".into(),
+                runs: vec![run(1, 0.7, 0.1)],
+            },
+        ];
+        let c = csv(&s);
+        assert_eq!(c.lines().count(), 4);
+        assert!(c.starts_with("estimator,spp,seconds,relmse,mse\n"));
+        let m = markdown("t", &[], &s);
+        assert!(m.contains("| ocv:spe=8 |"), "{m}");
+        let g = svg("t <&>", &s);
+        assert_eq!(g.matches("<polyline").count(), 2);
+        assert!(g.contains("t &lt;&amp;&gt;"));
+    }
+}
