@@ -201,3 +201,25 @@ fn graceful_worker_stop_finishes_the_tile_in_hand() {
     );
     assert!(effects.iter().any(|e| e == "bsdf:diffuse"), "{effects:?}");
 }
+
+#[test]
+fn two_coordinators_share_one_postgres() {
+    let db = TestDb::new(Backend::Postgres);
+    let a = Coordinator::start(db.config());
+    let b = Coordinator::start(db.config());
+    let scene = scene_json("cornell-box/scene.json");
+    let id = Client::new(&a.url()).submit(&spec(&scene, 32, 16, 8, 4));
+    let wa = Worker::start(&a.url(), "wa");
+    let wb = Worker::start(&b.url(), "wb");
+    // Either coordinator answers for the job.
+    let status = Client::new(&b.url()).wait(id, Duration::from_secs(120));
+    assert_eq!(status.state, JobState::Done, "{status:?}");
+    let (sa, sb) = (wa.stop(), wb.stop());
+    assert_eq!(
+        sa.uploaded + sb.uploaded,
+        status.tasks_total,
+        "{sa:?} {sb:?}"
+    );
+    let farm = Client::new(&a.url()).download(id, "image.exr");
+    assert!(farm == local_exr(&scene, &[], &status.job));
+}
