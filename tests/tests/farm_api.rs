@@ -106,7 +106,20 @@ fn stale_attempt_is_rejected_and_accepted_upload_is_idempotent() {
     assert_eq!(la.attempt, 1);
     assert!(a.heartbeat(la.task_id, 1).status == 200);
     // A goes silent; its lease expires and the reaper gives the task back.
-    std::thread::sleep(Duration::from_millis(1_200));
+    let t0 = std::time::Instant::now();
+    while coord
+        .block_on(coord.state.store.task(la.task_id))
+        .expect("store")
+        .expect("task")
+        .state
+        != "pending"
+    {
+        assert!(
+            t0.elapsed() < Duration::from_secs(20),
+            "the reaper never reclaimed the lease"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
     let lb = b.lease().expect("b leases");
     assert_eq!(
         (lb.task_id, lb.attempt),
