@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# Reproduces docs/bench/<scene>_d<D>/bench.{csv,md,svg}: a path reference per scene and depth
+# (time-budgeted), then `cvfarm bench` of the CV estimator against `path`.
+#
+#   cargo build --release -p cli && docs/bench/run_benches.sh
+#
+# Environment: REF_SECONDS (reference render budget, default 45), MAX_SECONDS (per-estimator
+# bench budget, default 30), SPP_SERIES (default 32,64,…,512), SCENES (default: colour-lamp many-lights veach-mis envmap),
+# DEPTHS (default: 2 5), ESTIMATORS (default: path,cms).
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+BIN=${BIN:-target/release/cvfarm}
+REF_SECONDS=${REF_SECONDS:-45}
+MAX_SECONDS=${MAX_SECONDS:-30}
+# cms trains on its first 16 spp: start the series where the CV is applied.
+SPP_SERIES=${SPP_SERIES:-32,64,128,256,512}
+SCENES=${SCENES:-"colour-lamp many-lights veach-mis envmap"}
+DEPTHS=${DEPTHS:-"2 5"}
+ESTIMATORS=${ESTIMATORS:-path,cms}
+mkdir -p out/bench-ref
+for scene in $SCENES; do
+  for d in $DEPTHS; do
+    ref=out/bench-ref/${scene}_d${d}.exr
+    if [ ! -f "$ref" ]; then
+      "$BIN" render "scenes/$scene/scene.json" --max-depth "$d" --seed 1000 \
+        --time-budget "$REF_SECONDS" -o "$ref" --stats "${ref%.exr}.json"
+    fi
+    "$BIN" bench "scenes/$scene/scene.json" --estimators "$ESTIMATORS" --max-depth "$d" \
+      --reference "$ref" --max-seconds "$MAX_SECONDS" --spp-series "$SPP_SERIES" --out "docs/bench/${scene}_d${d}"
+  done
+done
