@@ -124,25 +124,7 @@ fn overhead(backend: Backend) {
     let spec = serde_json::json!({
         "scene": {"inline": scene}, "resolution": [res, res], "spp": spp, "tile_size": tile, "seed": 1,
     });
-    // In-process: the same render the farm's tasks do, on 2 threads.
     let desc: scene::SceneDesc = serde_json::from_value(scene.clone()).expect("desc");
-    let mut loaded = scene::load(&desc, &scene::MemoryAssets::new()).expect("load");
-    loaded.scene.film.width = res;
-    loaded.scene.film.height = res;
-    let settings = render::integrator::RenderSettings {
-        spp,
-        seed: 1,
-        ..render::integrator::RenderSettings::from_scene(&loaded.scene)
-    };
-    let t0 = Instant::now();
-    let rs = render::integrator::RenderScene::new(&loaded.scene, &settings).expect("prepare");
-    let opts = render::tile::RenderOptions {
-        tile_size: tile,
-        threads: 2,
-    };
-    render::tile::render_image(&rs, &settings, &opts, &|_, _| {}).expect("render");
-    let local = t0.elapsed().as_secs_f64();
-
     let db = TestDb::new(backend);
     let coord = Coordinator::start(db.config());
     let client = Client::new(&coord.url());
@@ -150,18 +132,40 @@ fn overhead(backend: Backend) {
         .map(|i| Worker::start(&coord.url(), &format!("w{i}")))
         .collect();
     std::thread::sleep(Duration::from_millis(300)); // workers registered and polling
-    let t0 = Instant::now();
-    let id = client.submit(&spec);
-    let st = client.wait(id, Duration::from_secs(600));
-    let farm = t0.elapsed().as_secs_f64();
-    assert_eq!(st.state, JobState::Done);
+    // The machine may be shared: alternate the two and keep the best of each.
+    let (mut local, mut farm, mut tasks) = (f64::INFINITY, f64::INFINITY, 0);
+    for _ in 0..3 {
+        // In-process: the same render the farm's tasks do (scene load, prepare, 2 threads).
+        let t0 = Instant::now();
+        let mut loaded = scene::load(&desc, &scene::MemoryAssets::new()).expect("load");
+        loaded.scene.film.width = res;
+        loaded.scene.film.height = res;
+        let settings = render::integrator::RenderSettings {
+            spp,
+            seed: 1,
+            ..render::integrator::RenderSettings::from_scene(&loaded.scene)
+        };
+        let rs = render::integrator::RenderScene::new(&loaded.scene, &settings).expect("prepare");
+        let opts = render::tile::RenderOptions {
+            tile_size: tile,
+            threads: 2,
+        };
+        render::tile::render_image(&rs, &settings, &opts, &|_, _| {}).expect("render");
+        local = local.min(t0.elapsed().as_secs_f64());
+
+        let t0 = Instant::now();
+        let id = client.submit(&spec);
+        let st = client.wait(id, Duration::from_secs(600));
+        farm = farm.min(t0.elapsed().as_secs_f64());
+        assert_eq!(st.state, JobState::Done);
+        tasks = st.tasks_total;
+    }
     for w in ws {
         w.stop();
     }
     println!(
-        "overhead [{backend:?}]: {res}x{res} cornell-box {spp} spp, {} tiles of {tile}: in-process 2 threads {local:.3} s, \
+        "overhead [{backend:?}]: {res}x{res} cornell-box {spp} spp, {tasks} tiles of {tile}, best of 3: in-process 2 threads {local:.3} s, \
          farm 2 workers x 1 slot {farm:.3} s (submit to done, incl. assembly) => overhead {:+.1} %",
-        st.tasks_total,
         (farm / local - 1.0) * 100.0
     );
 }
