@@ -130,7 +130,8 @@ pub fn atrous(
                         let lq = (cur[3 * q] + cur[3 * q + 1] + cur[3 * q + 2]) / 3.0;
                         let mut e = (lp - lq).abs() / denom;
                         if let (Some(a), Some(s)) = (albedo, inv_sa2) {
-                            let d2: f32 = (0..3).map(|c| (a[3 * p + c] - a[3 * q + c]).powi(2)).sum();
+                            let d2: f32 =
+                                (0..3).map(|c| (a[3 * p + c] - a[3 * q + c]).powi(2)).sum();
                             e += d2 * s;
                         }
                         if let (Some(nb), Some(s)) = (normal, inv_sn) {

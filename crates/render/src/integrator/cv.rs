@@ -38,7 +38,7 @@
 //! # Grid
 //! `grid_resolution = [nx, ny, nz]` regular cells over the scene bounds (at most
 //! [`MAX_GRID_CELLS`]); the adaptive default gives the longest axis `max(width, height)/16`
-//! cells (clamped to 4…128) and the others proportionally.
+//! cells (clamped to 8…128) and the others proportionally.
 
 use std::collections::{BTreeMap, HashMap};
 use std::ops::Range;
@@ -293,7 +293,7 @@ impl Grid {
             }
             None => {
                 let longest = ext.max_element();
-                let n = (width.max(height) / 16).clamp(4, 128) as f32;
+                let n = (width.max(height) / 16).clamp(8, 128) as f32;
                 let r = |e: f32| ((n * e / longest).ceil() as u32).max(1);
                 [r(ext.x), r(ext.y), r(ext.z)]
             }
@@ -334,7 +334,11 @@ impl Grid {
                 0
             }
         };
-        let (x, y, z) = (c(q.x, self.res[0]), c(q.y, self.res[1]), c(q.z, self.res[2]));
+        let (x, y, z) = (
+            c(q.x, self.res[0]),
+            c(q.y, self.res[1]),
+            c(q.z, self.res[2]),
+        );
         x + self.res[0] * (y + self.res[1] * z)
     }
 }
@@ -396,9 +400,9 @@ impl TileCells {
                 let s = *self.index.entry(key).or_insert(n);
                 if s == n {
                     let acc = match ctx.kind {
-                        Kind::PerLight => CellAcc::Mean(MeanContributionAccumulator::new(
-                            ctx.layout.partitions,
-                        )),
+                        Kind::PerLight => {
+                            CellAcc::Mean(MeanContributionAccumulator::new(ctx.layout.partitions))
+                        }
                         _ => CellAcc::Moments(CellAccumulator::new(ctx.layout, ctx.color)),
                     };
                     self.cells.push((key, acc));
@@ -560,8 +564,8 @@ impl VertexObserver for Policy<'_, '_> {
         };
         let mut plain = [0.0f64; 3];
         for s in samples.iter().flatten() {
-            for c in 0..3 {
-                plain[c] += s.scale * s.value[c];
+            for (p, v) in plain.iter_mut().zip(s.value) {
+                *p += s.scale * v;
             }
         }
         let cell = self.cell_of(r);
@@ -679,9 +683,7 @@ fn run_tile(
             for s in samples.clone() {
                 let mut sampler = Sampler::new(st.seed, pixel, s);
                 let u = sampler.next_2d();
-                let ray = rs
-                    .camera
-                    .ray(Vec2::new(x as f32 + u.x, y as f32 + u.y));
+                let ray = rs.camera.ray(Vec2::new(x as f32 + u.x, y as f32 + u.y));
                 let phase = match (kind, table) {
                     (PhaseKind::Train, _) => Phase::Train(&mut cells),
                     (PhaseKind::Apply, Some(t)) => Phase::Apply(t),
@@ -732,6 +734,7 @@ fn run_tile(
 }
 
 /// Renders the tiles of one phase on `pool`, in parallel, returning outputs in tile order.
+#[allow(clippy::too_many_arguments)]
 fn run_phase(
     pool: &rayon::ThreadPool,
     ctx: &CvContext<'_>,
@@ -774,7 +777,11 @@ pub fn render_estimator_image(
                 o.color,
                 o.relative,
                 o.training_spp,
-                if o.relative { o.surrogate_spp.max(1) } else { 0 },
+                if o.relative {
+                    o.surrogate_spp.max(1)
+                } else {
+                    0
+                },
                 o.grid_resolution,
                 o.max_light_components,
                 SolvePolicy {

@@ -13,7 +13,9 @@ pub fn root() -> PathBuf {
 
 /// Loads `scenes/<name>/scene.json` (or any path relative to the repo root) at `w × h`.
 pub fn load(rel: &str, w: u32, h: u32) -> scene::Scene {
-    let mut s = scene::load_file(&root().join(rel)).expect("scene loads").scene;
+    let mut s = scene::load_file(&root().join(rel))
+        .expect("scene loads")
+        .scene;
     s.film.width = w;
     s.film.height = h;
     s

@@ -1,0 +1,249 @@
+//! Robustness and determinism of the CV estimators: finite images on every shipped scene
+//! and the shared Mitsuba scenes, named hard cases, bitwise determinism across thread
+//! counts and tile sizes, and the JSON spec of the estimators.
+
+mod cv_support;
+
+use cv_support::{all_finite, load, region_mean, render};
+use render::integrator::cms::CmsOptions;
+use render::integrator::optimal_mis::OptimalMisOptions;
+use render::integrator::per_light_cv::PerLightCvOptions;
+use render::{Estimator, RenderOptions};
+
+fn estimators() -> Vec<Estimator> {
+    vec![
+        Estimator::Cms(CmsOptions {
+            training_spp: 4,
+            min_samples: 4,
+            ..CmsOptions::default()
+        }),
+        Estimator::Cms(CmsOptions {
+            relative: false,
+            color: render::integrator::cv::CvColor::Mono,
+            training_spp: 4,
+            grid_resolution: Some([8, 8, 8]),
+            ..CmsOptions::default()
+        }),
+        Estimator::PerLightCv(PerLightCvOptions {
+            training_spp: 4,
+            ..PerLightCvOptions::default()
+        }),
+        Estimator::OptimalMis(OptimalMisOptions {
+            training_spp: 4,
+            min_samples: 4,
+            ..OptimalMisOptions::default()
+        }),
+    ]
+}
+
+fn finite_everywhere(rel: &str) {
+    let s = load(rel, 20, 16);
+    for e in estimators() {
+        let (f, report) = render(&s, e, 8, 3, None, RenderOptions::default());
+        assert!(all_finite(&f), "{rel} {e:?}");
+        assert_eq!(f.rejected, 0, "{rel} {e:?}: rejected samples");
+        assert!(f.pixels.iter().all(|p| p.count == 8));
+        assert!(
+            report
+                .layers
+                .iter()
+                .all(|l| l.data.iter().flatten().all(|v| v.is_finite()))
+        );
+    }
+}
+
+#[test]
+fn finite_on_cornell_box() {
+    finite_everywhere("scenes/cornell-box/scene.json");
+}
+
+#[test]
+fn finite_on_veach_mis() {
+    finite_everywhere("scenes/veach-mis/scene.json");
+}
+
+#[test]
+fn finite_on_many_lights() {
+    finite_everywhere("scenes/many-lights/scene.json");
+}
+
+#[test]
+fn finite_on_envmap() {
+    finite_everywhere("scenes/envmap/scene.json");
+}
+
+#[test]
+fn finite_on_colour_lamp() {
+    finite_everywhere("scenes/colour-lamp/scene.json");
+}
+
+/// High-contrast texture boundaries (checkerboard under a large and a small light).
+#[test]
+fn finite_on_checkers_high_contrast_texture() {
+    finite_everywhere("scenes/checkers/scene.json");
+}
+
+#[test]
+fn finite_on_mitsuba_scenes() {
+    for rel in [
+        "/work/shared/scenes-mitsuba/cbox/scene.xml",
+        "/work/shared/scenes-mitsuba/manylights-4/scene.xml",
+        "/work/shared/scenes-mitsuba/bsdf-spheres/roughconductor-ggx/scene.xml",
+        "/work/shared/scenes-mitsuba/bsdf-spheres/roughplastic-ggx/scene.xml",
+    ] {
+        if std::path::Path::new(rel).exists() {
+            finite_everywhere(rel);
+        }
+    }
+}
+
+/// 64 lights clustered into 4 components: most clusters' lights are unsampled in most cells,
+/// and with a fine grid many cells see only a few partitions; the image stays finite and
+/// unbiased against `path` on the whole-image mean.
+#[test]
+fn many_lights_clustered_with_unsampled_partitions() {
+    let s = load("scenes/many-lights/scene.json", 24, 24);
+    let e = Estimator::Cms(CmsOptions {
+        training_spp: 4,
+        min_samples: 4,
+        grid_resolution: Some([16, 16, 16]),
+        max_light_components: 4,
+        ..CmsOptions::default()
+    });
+    let opts = RenderOptions::default();
+    let mut means = Vec::new();
+    for seed in 0..8 {
+        let (f, report) = render(&s, e, 12, seed, Some(3), opts);
+        assert!(all_finite(&f));
+        assert_eq!(report.light_components, 4);
+        means.push(region_mean(&f, 0, 0, 24, 24));
+    }
+    let (reference, _) = render(&s, Estimator::Path, 512, 77, Some(3), opts);
+    let r = region_mean(&reference, 0, 0, 24, 24);
+    for c in 0..3 {
+        let xs: Vec<f64> = means.iter().map(|m| m[c]).collect();
+        let (m, se) = cv_support::mean_se(&xs);
+        assert!((m - r[c]).abs() < 5.0 * se + 0.03 * r[c], "{m} vs {}", r[c]);
+    }
+}
+
+/// Occluded lights: in the Cornell box most NEE samples from the floor under the boxes and
+/// behind them are occluded (zero-contribution samples with every pdf); a fine grid makes
+/// many cells mostly occluded. Finite, and the cv_term layer averages to ~0 (unbiased).
+#[test]
+fn occluded_lights_zero_contribution_samples() {
+    let s = load("scenes/cornell-box/scene.json", 32, 32);
+    let e = Estimator::Cms(CmsOptions {
+        training_spp: 8,
+        min_samples: 4,
+        grid_resolution: Some([24, 24, 24]),
+        ..CmsOptions::default()
+    });
+    let (f, report) = render(&s, e, 32, 5, None, RenderOptions::default());
+    assert!(all_finite(&f));
+    assert!(report.cells_solved > 0, "{report:?}");
+    let cv = &report.layers[0].data;
+    for c in 0..3 {
+        let xs: Vec<f64> = cv.iter().map(|v| f64::from(v[c])).collect();
+        let (m, se) = cv_support::mean_se(&xs);
+        assert!(m.abs() <= 5.0 * se + 1e-9, "cv term mean {m} ± {se}");
+    }
+}
+
+#[test]
+fn deterministic_across_threads_and_tile_sizes() {
+    let s = load("scenes/colour-lamp/scene.json", 37, 23);
+    for e in estimators() {
+        let (a, ra) = render(
+            &s,
+            e,
+            8,
+            11,
+            None,
+            RenderOptions {
+                tile_size: 8,
+                threads: 1,
+            },
+        );
+        let (b, rb) = render(
+            &s,
+            e,
+            8,
+            11,
+            None,
+            RenderOptions {
+                tile_size: 13,
+                threads: 2,
+            },
+        );
+        assert!(a.pixels == b.pixels, "{e:?}");
+        assert_eq!(ra.cells, rb.cells);
+        assert_eq!(ra.layers, rb.layers);
+    }
+}
+
+/// With fewer samples than the training budget there is no render phase: the image is the
+/// plain estimator's, and the report says so.
+#[test]
+fn tiny_budget_has_no_render_phase() {
+    let s = load("scenes/cornell-box/scene.json", 8, 8);
+    let (f, report) = render(
+        &s,
+        Estimator::Cms(CmsOptions::default()),
+        2,
+        0,
+        None,
+        RenderOptions::default(),
+    );
+    assert!(all_finite(&f));
+    assert_eq!(
+        (report.surrogate_spp, report.training_spp, report.render_spp),
+        (1, 1, 0)
+    );
+}
+
+#[test]
+fn estimator_json_specs_parse_and_reject_unknown_fields() {
+    let e: Estimator = serde_json::from_str(
+        r#"{ "kind": "cms", "relative": false, "color": "mono", "grid_resolution": [4, 5, 6] }"#,
+    )
+    .unwrap();
+    let Estimator::Cms(o) = e else {
+        panic!("{e:?}")
+    };
+    assert_eq!(o.grid_resolution, Some([4, 5, 6]));
+    assert_eq!(o.color, render::integrator::cv::CvColor::Mono);
+    assert_eq!(o.training_spp, 16);
+    assert!(serde_json::from_str::<Estimator>(r#"{ "kind": "cms", "bogus": 1 }"#).is_err());
+    assert!(matches!(
+        serde_json::from_str::<Estimator>(r#"{ "kind": "per_light_cv" }"#),
+        Ok(Estimator::PerLightCv(_))
+    ));
+    assert!(matches!(
+        serde_json::from_str::<Estimator>(r#"{ "kind": "optimal_mis", "training_spp": 8 }"#),
+        Ok(Estimator::OptimalMis(o)) if o.training_spp == 8
+    ));
+    let s = serde_json::to_string(&Estimator::Cms(CmsOptions::default())).unwrap();
+    assert!(s.contains(r#""kind":"cms""#), "{s}");
+}
+
+#[test]
+fn bad_grid_resolution_is_an_error() {
+    let s = load("scenes/cornell-box/scene.json", 8, 8);
+    let st = render::RenderSettings {
+        spp: 4,
+        estimator: Estimator::Cms(CmsOptions {
+            grid_resolution: Some([0, 4, 4]),
+            ..CmsOptions::default()
+        }),
+        ..render::RenderSettings::from_scene(&s)
+    };
+    let rs = render::RenderScene::new(&s, &st).unwrap();
+    let r = render::integrator::cv::render_estimator_image(
+        &rs,
+        &st,
+        &RenderOptions::default(),
+        &|_, _| {},
+    );
+    assert!(r.is_err());
+}
