@@ -383,6 +383,7 @@ pub fn run(args: &BenchArgs) -> Result<ExitCode> {
     scene.integrator.max_depth = st0.max_depth;
     let rs = RenderScene::new(&scene, &st0)
         .with_context(|| format!("preparing {}", args.scene.display()))?;
+    let mut ref_floor: Option<f64> = None;
     let reference = match &args.reference {
         Some(p) => {
             let img = imageio::read_exr(p).with_context(|| format!("reading {}", p.display()))?;
@@ -397,7 +398,14 @@ pub fn run(args: &BenchArgs) -> Result<ExitCode> {
                 );
             }
             let layer = img.main_layer().context("reference has no colour layer")?;
-            Some(layer.data.iter().flatten().copied().collect::<Vec<f32>>())
+            let data: Vec<f32> = layer.data.iter().flatten().copied().collect();
+            // The reference's own noise (from its variance layer) is a floor under every
+            // measured relMSE: report it so speedups near the floor are read with care.
+            ref_floor = img.layer("variance").and_then(|v| {
+                let var: Vec<f32> = v.data.iter().flatten().copied().collect();
+                estimators::metrics::estimated_rel_mse(&data, &var)
+            });
+            Some(data)
         }
         None => None,
     };
@@ -477,7 +485,11 @@ pub fn run(args: &BenchArgs) -> Result<ExitCode> {
             args.seed
         ),
         match &args.reference {
-            Some(p) => format!("error against the reference `{}` (relMSE ε = 0.01)", p.display()),
+            Some(p) => format!(
+                "error against the reference `{}` (relMSE ε = 0.01); the reference's own estimated relMSE (noise floor under every figure) is {}",
+                p.display(),
+                ref_floor.map_or("unknown (no variance layer)".to_string(), |f| format!("{f:.2e}"))
+            ),
             None => "no reference: relMSE estimated from the per-pixel variance of the mean".into(),
         },
         "seconds = render wall time (scene preparation excluded); measured on a loaded, shared 2-core machine (other builds running), so times carry several % noise".into(),
