@@ -492,13 +492,21 @@ pub fn run(args: &BenchArgs) -> Result<ExitCode> {
             ),
             None => "no reference: relMSE estimated from the per-pixel variance of the mean".into(),
         },
-        "seconds = render wall time (scene preparation excluded); measured on a loaded, shared 2-core machine (other builds running), so times carry several % noise".into(),
+        "seconds = render wall time (scene preparation excluded); measured on a loaded, shared 2-core machine (other builds and tests running concurrently): times, and with them equal-time speedups and overheads, can be off by tens of percent".into(),
         format!(
-            "rerun: `cvfarm bench {} --estimators {} --max-depth {} --max-seconds {}{}`",
+            "rerun: `cvfarm bench {} --estimators {} --max-depth {} --max-seconds {}{}{}`",
             args.scene.display(),
             items.iter().map(|i| i.0.as_str()).collect::<Vec<_>>().join(","),
             st0.max_depth,
             args.max_seconds,
+            if args.spp_series.is_empty() {
+                String::new()
+            } else {
+                format!(
+                    " --spp-series {}",
+                    args.spp_series.iter().map(u32::to_string).collect::<Vec<_>>().join(",")
+                )
+            },
             args.reference
                 .as_ref()
                 .map(|p| format!(" --reference {}", p.display()))
