@@ -12,6 +12,8 @@
 //! - a result is accepted only from the worker holding the current attempt's lease, and
 //!   re-uploading an accepted (task, attempt) is a no-op.
 
+use std::collections::HashMap;
+use std::sync::Arc;
 use std::time::{SystemTime, UNIX_EPOCH};
 
 use protocol::job::{ResolvedJob, TaskPlan, TileRect};
@@ -72,10 +74,25 @@ pub fn dollar_placeholders(s: &str) -> String {
 }
 
 /// A connection pool plus the backend it talks to.
+///
+/// The only memory it keeps is a cache of rows that never change once written (worker
+/// secret hashes, job specs): losing it loses nothing, and every coordinator sharing the
+/// database sees the same values.
 #[derive(Clone, Debug)]
 pub struct Store {
     pool: AnyPool,
     backend: Backend,
+    cache: Arc<std::sync::Mutex<Cache>>,
+}
+
+/// Entries per cache map before it is cleared.
+const CACHE_LIMIT: usize = 10_000;
+
+/// Immutable rows, cached.
+#[derive(Debug, Default)]
+struct Cache {
+    secrets: HashMap<i64, String>,
+    jobs: HashMap<i64, Arc<JobRow>>,
 }
 
 /// A job row.
@@ -273,7 +290,11 @@ impl Store {
                     .await?
             }
         };
-        let store = Self { pool, backend };
+        let store = Self {
+            pool,
+            backend,
+            cache: Arc::default(),
+        };
         match backend {
             Backend::Sqlite => {
                 sqlx::query("PRAGMA journal_mode = WAL")
@@ -374,8 +395,27 @@ impl Store {
         Ok(row.try_get("id")?)
     }
 
-    /// The stored secret hash of a worker.
+    /// The stored secret hash of a worker (cached: it never changes once written).
     pub async fn worker_secret_hash(&self, id: i64) -> Result<Option<String>> {
+        if let Some(h) = self
+            .cache
+            .lock()
+            .ok()
+            .and_then(|c| c.secrets.get(&id).cloned())
+        {
+            return Ok(Some(h));
+        }
+        let h = self.worker_secret_hash_uncached(id).await?;
+        if let (Some(h), Ok(mut c)) = (&h, self.cache.lock()) {
+            if c.secrets.len() > CACHE_LIMIT {
+                c.secrets.clear();
+            }
+            c.secrets.insert(id, h.clone());
+        }
+        Ok(h)
+    }
+
+    async fn worker_secret_hash_uncached(&self, id: i64) -> Result<Option<String>> {
         let sql = self.sql("SELECT secret_hash FROM workers WHERE id = ?");
         let row = sqlx::query(&sql)
             .bind(id)
@@ -453,6 +493,30 @@ impl Store {
         }
         tx.commit().await?;
         Ok(job_id)
+    }
+
+    /// A job's immutable parts (spec, resolved settings, scene, estimator, effects; **not**
+    /// its state), cached: lease building needs them for every task.
+    pub async fn job_spec(&self, id: i64) -> Result<Option<Arc<JobRow>>> {
+        if let Some(j) = self
+            .cache
+            .lock()
+            .ok()
+            .and_then(|c| c.jobs.get(&id).cloned())
+        {
+            return Ok(Some(j));
+        }
+        let Some(job) = self.job(id).await? else {
+            return Ok(None);
+        };
+        let job = Arc::new(job);
+        if let Ok(mut c) = self.cache.lock() {
+            if c.jobs.len() > CACHE_LIMIT {
+                c.jobs.clear();
+            }
+            c.jobs.insert(id, job.clone());
+        }
+        Ok(Some(job))
     }
 
     /// A job by id.

@@ -115,7 +115,7 @@ async fn lease(
 async fn build_lease(st: &AppState, t: LeasedTask) -> AppResult<TaskLease> {
     let job = st
         .store
-        .job(t.job_id)
+        .job_spec(t.job_id)
         .await?
         .ok_or_else(|| AppError::Internal(format!("job {} vanished", t.job_id)))?;
     let spec: JobSpec = serde_json::from_str(&job.spec)
@@ -128,7 +128,7 @@ async fn build_lease(st: &AppState, t: LeasedTask) -> AppResult<TaskLease> {
         rect: t.rect,
         sample_start: t.sample_start,
         sample_end: t.sample_end,
-        scene_hash: job.scene_hash,
+        scene_hash: job.scene_hash.clone(),
         assets: spec.assets,
         job: job.resolved,
         estimator: spec.estimator,
