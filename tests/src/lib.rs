@@ -144,7 +144,8 @@ impl Coordinator {
         Self::start_on(config, "127.0.0.1:0".parse().expect("addr"))
     }
 
-    fn start_on(config: coordinator::Config, addr: std::net::SocketAddr) -> Self {
+    /// Starts on a given address (retrying the bind for a few seconds).
+    pub fn start_on(config: coordinator::Config, addr: std::net::SocketAddr) -> Self {
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(2)
             .enable_all()

@@ -223,3 +223,23 @@ fn two_coordinators_share_one_postgres() {
     let farm = Client::new(&a.url()).download(id, "image.exr");
     assert!(farm == local_exr(&scene, &[], &status.job));
 }
+
+#[test]
+fn worker_started_before_the_coordinator_connects_with_back_off() {
+    let db = TestDb::new(Backend::Sqlite);
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .expect("bind")
+        .local_addr()
+        .expect("addr")
+        .port();
+    let addr: std::net::SocketAddr = format!("127.0.0.1:{port}").parse().expect("addr");
+    let w = Worker::start(&format!("http://{addr}"), "early");
+    std::thread::sleep(Duration::from_millis(800)); // several refused connections
+    let coord = Coordinator::start_on(db.config(), addr);
+    let client = Client::new(&coord.url());
+    let scene = scene_json("cornell-box/scene.json");
+    let id = client.submit(&spec(&scene, 16, 4, 8, 2));
+    let status = client.wait(id, Duration::from_secs(60));
+    assert_eq!(status.state, JobState::Done);
+    assert_eq!(w.stop().uploaded, status.tasks_total);
+}
