@@ -251,6 +251,22 @@ fn bad_input_is_4xx_json_naming_the_problem() {
         "missing_asset",
         "museum",
     );
+    // A scene bundle that was never uploaded, and one that is not a scene.
+    let mut s = small_spec(2);
+    s["scene"] = serde_json::json!({"bundle": "ab".repeat(32)});
+    check(
+        client.submit_raw(&serde_json::to_vec(&s).unwrap()),
+        422,
+        "invalid_scene",
+        "uploaded",
+    );
+    s["scene"] = serde_json::json!({"bundle": client.upload_asset(b"[1, 2]")});
+    check(
+        client.submit_raw(&serde_json::to_vec(&s).unwrap()),
+        422,
+        "invalid_scene",
+        "native scene",
+    );
     // Oversized body.
     let big = vec![b' '; 100 << 10];
     check(client.submit_raw(&big), 413, "body_too_large", "limit");

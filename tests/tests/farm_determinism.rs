@@ -83,7 +83,10 @@ fn scene_with_uploaded_asset_renders_identically() {
         .as_str()
         .expect("env filename")
         .to_owned();
+    // The scene document itself goes up as a bundle, addressed by content.
+    let bundle = client.upload_asset(&serde_json::to_vec(&scene).expect("json"));
     let mut s = spec(&scene, 16, 4, 8, 3);
+    s["scene"] = serde_json::json!({ "bundle": bundle });
     s["assets"] = serde_json::json!({ name.clone(): hash });
     let id = client.submit(&s);
     let w = Worker::start(&coord.url(), "w");
