@@ -3,13 +3,16 @@
 //!
 //! Each estimator renders the scene at a geometric series of sample counts (1, 2, 4, … spp,
 //! i.e. roughly doubling time budgets; or `--spp-series`) until its next render would push
-//! its total past `--max-seconds`. Every run records `(spp, seconds, relMSE, MSE)`; seconds
-//! are the wall time of rendering (scene preparation excluded, it is the same for all).
+//! its total past `--max-seconds` (wall time). Every run records `(spp, seconds, relMSE, MSE)`
+//! plus its wall and CPU seconds; `seconds` is the clock the comparisons use (`--clock`):
+//! by default the **process CPU time** of rendering (all threads, from `/proc/self/stat`),
+//! which is far less disturbed than wall time when other jobs share the machine; `wall` is
+//! the alternative. Scene preparation is excluded (it is the same for all).
 //! Without `--reference` the error is estimated from the per-pixel variance of the mean
 //! (`estimators::metrics::estimated_rel_mse`; exact in expectation for unbiased estimators).
 //!
 //! Outputs in `--out DIR`:
-//! - `bench.csv`: `estimator,spp,seconds,relmse,mse`, one row per run;
+//! - `bench.csv`: `estimator,spp,seconds,relmse,mse,wall_seconds,cpu_seconds`, one row per run;
 //! - `bench.md`: per estimator vs `path` — **equal-time speedup** `relMSE_path(t)/relMSE_X(t)`
 //!   at `t` = the smaller of both longest run times (log-log interpolation of the series,
 //!   extrapolated along the Monte Carlo rate `1/t`), **equal-sample speedup**
@@ -25,6 +28,7 @@
 //! | `--out DIR` | `bench` | output directory |
 //! | `--max-seconds S` | 60 | render-time budget per estimator (the series stops before exceeding it) |
 //! | `--spp-series LIST` | 1,2,4,… | explicit sample counts |
+//! | `--clock C` | `cpu` | `cpu` (process CPU seconds) or `wall` for the comparisons |
 //! | `--seed`, `--threads`, `--res`, `--tile-size`, `-D` | as `render` | |
 //!
 //! ```text
@@ -67,6 +71,9 @@ pub struct BenchArgs {
     /// Explicit sample counts (comma-separated) instead of 1, 2, 4, ….
     #[arg(long, value_delimiter = ',', value_parser = clap::value_parser!(u32).range(1..))]
     pub spp_series: Vec<u32>,
+    /// Clock of the comparisons: process CPU seconds (robust on a shared machine) or wall.
+    #[arg(long, value_enum, default_value_t = Clock::Cpu)]
+    pub clock: Clock,
     /// Sampler seed.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -84,13 +91,38 @@ pub struct BenchArgs {
     pub define: Vec<String>,
 }
 
+/// The clock that the speedups and the plot use.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Clock {
+    /// Process CPU seconds (user + system, all threads).
+    Cpu,
+    /// Wall-clock seconds.
+    Wall,
+}
+
+/// CPU seconds (user + system) of this process so far, from `/proc/self/stat` (Linux;
+/// `None` elsewhere). Resolution: one clock tick (10 ms).
+pub fn process_cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // Fields after `(comm)`: state is field 3, utime field 14, stime field 15.
+    let rest = stat.get(stat.rfind(')')? + 1..)?;
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks = |i: usize| f.get(i).and_then(|v| v.parse::<f64>().ok());
+    // USER_HZ, fixed at 100 for the /proc interface on Linux.
+    Some((ticks(11)? + ticks(12)?) / 100.0)
+}
+
 /// One render of the series.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Run {
     /// Samples per pixel.
     pub spp: u32,
-    /// Render wall seconds.
+    /// Seconds on the comparison clock (`--clock`).
     pub seconds: f64,
+    /// Render wall seconds.
+    pub wall_seconds: f64,
+    /// Render CPU seconds of the process (NaN when unknown).
+    pub cpu_seconds: f64,
     /// relMSE (ε = 0.01) against the reference, or estimated from variance.
     pub relmse: f64,
     /// MSE (or mean variance of the mean without a reference).
@@ -172,13 +204,13 @@ pub fn speedups(base: &Series, x: &Series) -> Option<Speedups> {
 
 /// The CSV text.
 pub fn csv(series: &[Series]) -> String {
-    let mut s = String::from("estimator,spp,seconds,relmse,mse\n");
+    let mut s = String::from("estimator,spp,seconds,relmse,mse,wall_seconds,cpu_seconds\n");
     for se in series {
         for r in &se.runs {
             let _ = writeln!(
                 s,
-                "{},{},{:.6},{:.6e},{:.6e}",
-                se.label, r.spp, r.seconds, r.relmse, r.mse
+                "{},{},{:.6},{:.6e},{:.6e},{:.6},{:.6}",
+                se.label, r.spp, r.seconds, r.relmse, r.mse, r.wall_seconds, r.cpu_seconds
             );
         }
     }
@@ -220,14 +252,14 @@ pub fn markdown(title: &str, notes: &[String], series: &[Series]) -> String {
         );
     }
     s.push_str(
-        "\n## Series\n\n| estimator | spp | seconds | relMSE | MSE |\n|---|---|---|---|---|\n",
+        "\n## Series\n\n| estimator | spp | seconds | relMSE | MSE | wall s | CPU s |\n|---|---|---|---|---|---|---|\n",
     );
     for se in series {
         for r in &se.runs {
             let _ = writeln!(
                 s,
-                "| {} | {} | {:.3} | {:.4e} | {:.4e} |",
-                se.label, r.spp, r.seconds, r.relmse, r.mse
+                "| {} | {} | {:.3} | {:.4e} | {:.4e} | {:.3} | {:.3} |",
+                se.label, r.spp, r.seconds, r.relmse, r.mse, r.wall_seconds, r.cpu_seconds
             );
         }
     }
@@ -428,11 +460,12 @@ pub fn run(args: &BenchArgs) -> Result<ExitCode> {
         let mut total = 0.0;
         for &spp in &series_spp {
             if let Some(last) = runs.last() {
-                let predicted = last.seconds * f64::from(spp) / f64::from(last.spp);
+                let predicted = last.wall_seconds * f64::from(spp) / f64::from(last.spp);
                 if total + predicted > args.max_seconds {
                     break;
                 }
             }
+            let cpu0 = process_cpu_seconds();
             let r =
                 local_render::render_spp(&rs, &RenderSettings { spp, ..st }, &options, &|_, _| {})
                     .with_context(|| format!("rendering {label} at {spp} spp"))?;
@@ -451,6 +484,10 @@ pub fn run(args: &BenchArgs) -> Result<ExitCode> {
                     (rel, mse)
                 }
             };
+            let cpu = match (cpu0, process_cpu_seconds()) {
+                (Some(a), Some(b)) => b - a,
+                _ => f64::NAN,
+            };
             total += r.stats.seconds;
             eprintln!(
                 "bench {label}: {spp} spp in {:.2} s, relMSE {relmse:.3e}",
@@ -458,7 +495,12 @@ pub fn run(args: &BenchArgs) -> Result<ExitCode> {
             );
             runs.push(Run {
                 spp,
-                seconds: r.stats.seconds,
+                seconds: match args.clock {
+                    Clock::Cpu if cpu > 0.0 => cpu,
+                    _ => r.stats.seconds,
+                },
+                wall_seconds: r.stats.seconds,
+                cpu_seconds: cpu,
                 relmse,
                 mse,
             });
@@ -488,23 +530,43 @@ pub fn run(args: &BenchArgs) -> Result<ExitCode> {
             Some(p) => format!(
                 "error against the reference `{}` (relMSE ε = 0.01); the reference's own estimated relMSE (noise floor under every figure) is {}",
                 p.display(),
-                ref_floor.map_or("unknown (no variance layer)".to_string(), |f| format!("{f:.2e}"))
+                ref_floor.map_or("unknown (no variance layer)".to_string(), |f| format!(
+                    "{f:.2e}"
+                ))
             ),
             None => "no reference: relMSE estimated from the per-pixel variance of the mean".into(),
         },
-        "seconds = render wall time (scene preparation excluded); measured on a loaded, shared 2-core machine (other builds and tests running concurrently): times, and with them equal-time speedups and overheads, can be off by tens of percent".into(),
         format!(
-            "rerun: `cvfarm bench {} --estimators {} --max-depth {} --max-seconds {}{}{}`",
+            "seconds = {} of rendering (scene preparation excluded); measured on a loaded, shared 2-core machine (other builds and tests running concurrently): CPU time is much steadier than wall time there, but cache and memory contention still move times, and with them equal-time speedups and overheads, by up to tens of percent",
+            match args.clock {
+                Clock::Cpu => "process CPU seconds (all render threads)",
+                Clock::Wall => "wall-clock seconds",
+            }
+        ),
+        format!(
+            "rerun: `cvfarm bench {} --estimators {} --max-depth {} --max-seconds {} --clock {}{}{}`",
             args.scene.display(),
-            items.iter().map(|i| i.0.as_str()).collect::<Vec<_>>().join(","),
+            items
+                .iter()
+                .map(|i| i.0.as_str())
+                .collect::<Vec<_>>()
+                .join(","),
             st0.max_depth,
             args.max_seconds,
+            match args.clock {
+                Clock::Cpu => "cpu",
+                Clock::Wall => "wall",
+            },
             if args.spp_series.is_empty() {
                 String::new()
             } else {
                 format!(
                     " --spp-series {}",
-                    args.spp_series.iter().map(u32::to_string).collect::<Vec<_>>().join(",")
+                    args.spp_series
+                        .iter()
+                        .map(u32::to_string)
+                        .collect::<Vec<_>>()
+                        .join(",")
                 )
             },
             args.reference
@@ -544,6 +606,8 @@ mod tests {
         Run {
             spp,
             seconds,
+            wall_seconds: seconds,
+            cpu_seconds: seconds,
             relmse,
             mse: relmse,
         }
@@ -584,7 +648,7 @@ mod tests {
         ];
         let c = csv(&s);
         assert_eq!(c.lines().count(), 4);
-        assert!(c.starts_with("estimator,spp,seconds,relmse,mse\n"));
+        assert!(c.starts_with("estimator,spp,seconds,relmse,mse,wall_seconds,cpu_seconds\n"));
         let m = markdown("t", &[], &s);
         assert!(m.contains("| ocv:spe=8 |"), "{m}");
         let g = svg("t <&>", &s);

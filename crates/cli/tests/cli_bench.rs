@@ -180,11 +180,14 @@ fn tiny_bench_writes_csv_markdown_and_svg() {
     assert!(stdout.contains("equal-time speedup"), "{stdout}");
     let csv = std::fs::read_to_string(out.join("bench.csv")).unwrap();
     let mut lines = csv.lines();
-    assert_eq!(lines.next(), Some("estimator,spp,seconds,relmse,mse"));
+    assert_eq!(
+        lines.next(),
+        Some("estimator,spp,seconds,relmse,mse,wall_seconds,cpu_seconds")
+    );
     let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
     assert_eq!(rows.len(), 6, "{csv}");
     for r in &rows {
-        assert_eq!(r.len(), 5);
+        assert_eq!(r.len(), 7);
         let relmse: f64 = r[3].parse().unwrap();
         assert!(relmse.is_finite() && relmse > 0.0, "{csv}");
     }
