@@ -61,7 +61,25 @@ use crate::tile::{RenderOptions, RenderStats, TileRect};
 /// Fixed tile edge of the training phase (canonical accumulator merge order).
 pub const TRAIN_TILE: u32 = 16;
 /// Most grid cells a job may ask for.
-pub const MAX_GRID_CELLS: u64 = 1 << 22;
+pub const MAX_GRID_CELLS: u64 = 1 << 20;
+/// Each grid cell is split by the dominant axis and sign of the shading normal, so that
+/// surfaces of different orientation (floor vs. plate vs. wall: incompatible integrals
+/// [Hua §4.2]) never share coefficients.
+pub const NORMAL_BINS: u32 = 6;
+
+/// Dominant axis and sign of `n`: `0..6`.
+#[inline]
+fn normal_bin(n: Vec3) -> u32 {
+    let a = n.abs();
+    let (axis, v) = if a.x >= a.y && a.x >= a.z {
+        (0, n.x)
+    } else if a.y >= a.z {
+        (1, n.y)
+    } else {
+        (2, n.z)
+    };
+    2 * axis + u32::from(v < 0.0)
+}
 
 /// Colour handling of the CV coefficients [Hua §4.3].
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -302,7 +320,7 @@ impl Grid {
         if cells > MAX_GRID_CELLS {
             return Err(RenderError::InvalidSetting {
                 field: "grid_resolution",
-                reason: "more than 2^22 cells",
+                reason: "more than 2^20 cells",
             });
         }
         let resf = Vec3::new(res[0] as f32, res[1] as f32, res[2] as f32);
@@ -544,7 +562,9 @@ impl Policy<'_, '_> {
     #[inline]
     fn cell_of(&self, r: &VertexRecord) -> Option<u32> {
         match self.ctx.kind {
-            Kind::Cms | Kind::PerLight => Some(self.ctx.grid.cell(r.p)),
+            Kind::Cms | Kind::PerLight => {
+                Some(self.ctx.grid.cell(r.p) * NORMAL_BINS + normal_bin(r.ns))
+            }
             Kind::OptimalMis => (r.depth == 0).then_some(self.pixel),
         }
     }
@@ -956,7 +976,7 @@ pub fn render_estimator_image(
     });
     let table_len = match kind {
         Kind::OptimalMis => rs.width as usize * rs.height as usize,
-        _ => grid.cells(),
+        _ => grid.cells() * NORMAL_BINS as usize,
     };
     let mut table = CoefficientTable {
         slot: vec![u32::MAX; table_len],
@@ -1082,10 +1102,38 @@ fn surrogate_image(film: &Film) -> Vec<f64> {
     let (w, h) = (film.width as usize, film.height as usize);
     let flat = |img: Vec<[f32; 3]>| -> Vec<f32> { img.into_iter().flatten().collect() };
     let color = flat(film.mean_image());
+    // Variance of the pixel means; with fewer than 2 samples per pixel a per-pixel estimate
+    // does not exist, so the 3×3 spatial variance of the channel mean stands in (SVGF's
+    // spatial fallback), else the colour edge-stopping would keep the noise.
+    let lum: Vec<f32> = color
+        .chunks_exact(3)
+        .map(|c| (c[0] + c[1] + c[2]) / 3.0)
+        .collect();
     let var: Vec<f32> = film
         .variance_image()
         .into_iter()
-        .map(|v| ((v[0] + v[1] + v[2]) / 3.0).max(0.0))
+        .enumerate()
+        .map(|(i, v)| {
+            let per_pixel = ((v[0] + v[1] + v[2]) / 3.0).max(0.0);
+            if film.pixels[i].count >= 2 {
+                return per_pixel;
+            }
+            let (x, y) = ((i % w) as isize, (i / w) as isize);
+            let (mut s, mut s2, mut k) = (0.0f32, 0.0f32, 0.0f32);
+            for dy in -1..=1 {
+                for dx in -1..=1 {
+                    let (xx, yy) = (x + dx, y + dy);
+                    if xx >= 0 && yy >= 0 && (xx as usize) < w && (yy as usize) < h {
+                        let l = lum[yy as usize * w + xx as usize];
+                        s += l;
+                        s2 += l * l;
+                        k += 1.0;
+                    }
+                }
+            }
+            let m = s / k;
+            (s2 / k - m * m).max(0.0)
+        })
         .collect();
     let albedo = flat(film.albedo_image());
     let normal = flat(film.normal_image());
