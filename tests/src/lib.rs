@@ -413,7 +413,7 @@ impl Client {
         let start = Instant::now();
         loop {
             let s = self.status(id);
-            if s.state != JobState::Running {
+            if !matches!(s.state, JobState::Running | JobState::Paused) {
                 return s;
             }
             assert!(

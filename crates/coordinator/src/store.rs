@@ -554,14 +554,34 @@ impl Store {
         rows.iter().map(|r| Ok(r.try_get("id")?)).collect()
     }
 
-    /// Sets a running job's state (done/failed/cancelled); returns whether it changed.
+    /// Ends a running or paused job (done/failed/cancelled); returns whether it changed.
     pub async fn end_job(&self, id: i64, state: JobState, error: Option<&str>) -> Result<bool> {
-        let sql = self.sql("UPDATE jobs SET state = ?, error = ?, finished_ms = ? WHERE id = ? AND state = 'running'");
+        let sql = self.sql(
+            "UPDATE jobs SET state = ?, error = ?, finished_ms = ? WHERE id = ? AND state IN ('running', 'paused')",
+        );
         let r = sqlx::query(&sql)
             .bind(state.as_str())
             .bind(error.map(str::to_owned))
             .bind(now_ms())
             .bind(id)
+            .execute(&self.pool)
+            .await?;
+        Ok(r.rows_affected() == 1)
+    }
+
+    /// Pauses a running job (`pause = true`) or resumes a paused one; returns whether it
+    /// changed. A paused job's tasks are not leased; leases in hand may still finish.
+    pub async fn set_paused(&self, id: i64, pause: bool) -> Result<bool> {
+        let (from, to) = if pause {
+            ("running", "paused")
+        } else {
+            ("paused", "running")
+        };
+        let sql = self.sql("UPDATE jobs SET state = ? WHERE id = ? AND state = ?");
+        let r = sqlx::query(&sql)
+            .bind(to)
+            .bind(id)
+            .bind(from)
             .execute(&self.pool)
             .await?;
         Ok(r.rows_affected() == 1)
@@ -754,7 +774,7 @@ impl Store {
     ) -> Result<bool> {
         let sql = self.sql(
             "UPDATE tasks SET lease_expires_ms = ? WHERE id = ? AND attempt = ? AND worker_id = ? AND state = 'leased' \
-             AND EXISTS (SELECT 1 FROM jobs j WHERE j.id = tasks.job_id AND j.state = 'running')",
+             AND EXISTS (SELECT 1 FROM jobs j WHERE j.id = tasks.job_id AND j.state IN ('running', 'paused'))",
         );
         let r = sqlx::query(&sql)
             .bind(now_ms() + lease_ms)
@@ -864,7 +884,7 @@ impl Store {
         let sql = self.sql(
             "UPDATE tasks SET state = 'done', done_attempt = ?, done_ms = ?, lease_expires_ms = NULL \
              WHERE id = ? AND attempt = ? AND worker_id = ? AND state = 'leased' \
-             AND EXISTS (SELECT 1 FROM jobs j WHERE j.id = tasks.job_id AND j.state = 'running')",
+             AND EXISTS (SELECT 1 FROM jobs j WHERE j.id = tasks.job_id AND j.state IN ('running', 'paused'))",
         );
         let r = sqlx::query(&sql)
             .bind(attempt)

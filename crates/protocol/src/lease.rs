@@ -141,6 +141,8 @@ pub struct UploadResponse {
 pub enum JobState {
     /// Waiting for or being worked on by workers.
     Running,
+    /// Paused by a client: no new leases until resumed.
+    Paused,
     /// Finished: results can be downloaded.
     Done,
     /// Gave up (a task exceeded its retry cap).
@@ -154,6 +156,7 @@ impl JobState {
     pub fn as_str(self) -> &'static str {
         match self {
             Self::Running => "running",
+            Self::Paused => "paused",
             Self::Done => "done",
             Self::Failed => "failed",
             Self::Cancelled => "cancelled",
@@ -164,6 +167,7 @@ impl JobState {
     pub fn parse(s: &str) -> Option<Self> {
         match s {
             "running" => Some(Self::Running),
+            "paused" => Some(Self::Paused),
             "done" => Some(Self::Done),
             "failed" => Some(Self::Failed),
             "cancelled" => Some(Self::Cancelled),

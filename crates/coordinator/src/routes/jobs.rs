@@ -35,6 +35,8 @@ pub fn router() -> Router<Arc<AppState>> {
         .route("/v1/jobs", post(submit).get(list))
         .route("/v1/jobs/{id}", get(status))
         .route("/v1/jobs/{id}/cancel", post(cancel))
+        .route("/v1/jobs/{id}/pause", post(pause))
+        .route("/v1/jobs/{id}/resume", post(resume))
         .route("/v1/jobs/{id}/{output}", get(output))
 }
 
@@ -293,6 +295,49 @@ async fn cancel(
     Ok(Json(job_status(&job, progress)?))
 }
 
+async fn pause(
+    State(st): State<Arc<AppState>>,
+    headers: HeaderMap,
+    id: Result<Path<i64>, PathRejection>,
+) -> AppResult<Json<JobStatus>> {
+    set_paused(&st, &headers, id, true).await
+}
+
+async fn resume(
+    State(st): State<Arc<AppState>>,
+    headers: HeaderMap,
+    id: Result<Path<i64>, PathRejection>,
+) -> AppResult<Json<JobStatus>> {
+    set_paused(&st, &headers, id, false).await
+}
+
+async fn set_paused(
+    st: &AppState,
+    headers: &HeaderMap,
+    id: Result<Path<i64>, PathRejection>,
+    pause: bool,
+) -> AppResult<Json<JobStatus>> {
+    require_token(headers, &st.config.client_tokens)?;
+    let job = load_job(st, id).await?;
+    if !st.store.set_paused(job.id, pause).await? {
+        let want = if pause { "running" } else { "paused" };
+        return Err(AppError::conflict(
+            "wrong_state",
+            format!("job {} is {}, not {want}", job.id, job.state.as_str()),
+        ));
+    }
+    if !pause {
+        st.work_available.notify_waiters();
+    }
+    let job = st
+        .store
+        .job(job.id)
+        .await?
+        .ok_or_else(|| AppError::NotFound(format!("job {}", job.id)))?;
+    let progress = st.store.progress(job.id, job.phase_idx).await?;
+    Ok(Json(job_status(&job, progress)?))
+}
+
 async fn output(
     State(st): State<Arc<AppState>>,
     headers: HeaderMap,
@@ -312,7 +357,7 @@ async fn output(
         .ok_or_else(|| AppError::NotFound(format!("job {id}")))?;
     match job.state {
         JobState::Done => {}
-        JobState::Running => {
+        JobState::Running | JobState::Paused => {
             return Err(AppError::conflict(
                 "not_finished",
                 format!("job {id} is still running"),

@@ -127,7 +127,9 @@ pub fn openapi() -> serde_json::Value {
                 "get": op("List jobs", "client", "200")
             },
             "/v1/jobs/{id}": { "get": op("Job status (state, phase, progress)", "client", "200") },
-            "/v1/jobs/{id}/cancel": { "post": op("Cancel a running job", "client", "200") },
+            "/v1/jobs/{id}/cancel": { "post": op("Cancel a running or paused job", "client", "200") },
+            "/v1/jobs/{id}/pause": { "post": op("Pause a running job (no new leases)", "client", "200") },
+            "/v1/jobs/{id}/resume": { "post": op("Resume a paused job", "client", "200") },
             "/v1/jobs/{id}/image.exr": { "get": op("Multi-layer EXR (beauty, variance, albedo, normal) of a finished job", "client", "200") },
             "/v1/jobs/{id}/preview.png": { "get": op("sRGB preview of a finished job", "client", "200") },
             "/v1/jobs/{id}/stats.json": { "get": op("Time per phase, spp, estimated error, effects simulated", "client", "200") },

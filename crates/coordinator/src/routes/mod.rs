@@ -7,7 +7,7 @@
 //! | GET | `/metrics`, `/openapi.json`, `/docs` | anyone | Prometheus metrics, OpenAPI document, HTML docs |
 //! | POST | `/v1/jobs` | client | submit a [`protocol::JobSpec`] |
 //! | GET | `/v1/jobs`, `/v1/jobs/{id}` | client | list / status |
-//! | POST | `/v1/jobs/{id}/cancel` | client | cancel |
+//! | POST | `/v1/jobs/{id}/cancel`, `/pause`, `/resume` | client | cancel, pause, resume |
 //! | GET | `/v1/jobs/{id}/image.exr`, `preview.png`, `stats.json` | client | outputs of a finished job |
 //! | PUT / GET | `/v1/assets/{sha256}` | client / client or worker | content-addressed upload / download |
 //! | POST | `/v1/workers/register` | enrollment token | per-worker token |

@@ -157,7 +157,9 @@ async fn upload(
         UploadOutcome::Duplicate => Ok(Json(UploadResponse { duplicate: true })),
         UploadOutcome::Stale => {
             let job = st.store.job(task.job_id).await?;
-            if let Some(job) = job.filter(|j| j.state != JobState::Running) {
+            if let Some(job) =
+                job.filter(|j| !matches!(j.state, JobState::Running | JobState::Paused))
+            {
                 return Err(AppError::conflict(
                     "job_not_running",
                     format!("job {} is {}", job.id, job.state.as_str()),
