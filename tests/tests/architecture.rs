@@ -8,15 +8,27 @@ use std::process::Command;
 fn workspace_graph() -> BTreeMap<String, BTreeSet<String>> {
     let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
     let out = Command::new(cargo)
-        .args(["metadata", "--format-version", "1", "--no-deps", "--offline"])
+        .args([
+            "metadata",
+            "--format-version",
+            "1",
+            "--no-deps",
+            "--offline",
+        ])
         .current_dir(env!("CARGO_MANIFEST_DIR"))
         .output()
         .expect("cargo metadata runs");
-    assert!(out.status.success(), "cargo metadata failed: {}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "cargo metadata failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let meta: serde_json::Value = serde_json::from_slice(&out.stdout).expect("metadata is JSON");
     let packages = meta["packages"].as_array().expect("packages");
-    let names: BTreeSet<String> =
-        packages.iter().map(|p| p["name"].as_str().unwrap().to_string()).collect();
+    let names: BTreeSet<String> = packages
+        .iter()
+        .map(|p| p["name"].as_str().unwrap().to_string())
+        .collect();
     packages
         .iter()
         .map(|p| {
@@ -57,7 +69,10 @@ fn estimators_depends_on_nothing_of_ours() {
 fn scene_depends_only_on_imageio() {
     let g = workspace_graph();
     let deps = reachable(&g, "scene");
-    assert!(deps.iter().all(|d| d == "imageio"), "scene depends on {deps:?}");
+    assert!(
+        deps.iter().all(|d| d == "imageio"),
+        "scene depends on {deps:?}"
+    );
 }
 
 #[test]
@@ -74,7 +89,13 @@ fn coordinator_never_links_the_renderer() {
     let g = workspace_graph();
     if g.contains_key("coordinator") {
         let deps = reachable(&g, "coordinator");
-        assert!(!deps.contains("render"), "coordinator depends on render: {deps:?}");
-        assert!(!deps.contains("worker"), "coordinator depends on worker: {deps:?}");
+        assert!(
+            !deps.contains("render"),
+            "coordinator depends on render: {deps:?}"
+        );
+        assert!(
+            !deps.contains("worker"),
+            "coordinator depends on worker: {deps:?}"
+        );
     }
 }
