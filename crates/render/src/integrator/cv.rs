@@ -59,7 +59,7 @@ use crate::sampler::Sampler;
 use crate::tile::{RenderOptions, RenderStats, TileRect};
 
 /// Fixed tile edge of the training phase (canonical accumulator merge order).
-pub const TRAIN_TILE: u32 = 16;
+pub const TRAIN_TILE: u32 = 32;
 /// Most grid cells a job may ask for.
 pub const MAX_GRID_CELLS: u64 = 1 << 20;
 /// Each grid cell is split by the dominant axis and sign of the shading normal, so that
@@ -400,10 +400,34 @@ enum CellAcc {
     Mean(MeanContributionAccumulator),
 }
 
+/// Multiplicative hash of `u32` cell keys (the std SipHash costs more than an accumulator
+/// update on the per-vertex path).
+#[derive(Clone, Copy, Default)]
+struct KeyHasher(u64);
+
+impl std::hash::Hasher for KeyHasher {
+    #[inline]
+    fn finish(&self) -> u64 {
+        self.0
+    }
+    #[inline]
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.0 = (self.0.rotate_left(8) ^ u64::from(b)).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+        }
+    }
+    #[inline]
+    fn write_u32(&mut self, k: u32) {
+        self.0 = u64::from(k).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    }
+}
+
+type KeyMap = HashMap<u32, usize, std::hash::BuildHasherDefault<KeyHasher>>;
+
 /// Training accumulators of one tile, in first-touch order.
 #[derive(Default)]
 struct TileCells {
-    index: HashMap<u32, usize>,
+    index: KeyMap,
     cells: Vec<(u32, CellAcc)>,
     last: Option<(u32, usize)>,
 }
