@@ -127,3 +127,42 @@ fn optimal_mis_is_unbiased_on_veach_mis() {
     });
     check("scenes/veach-mis/scene.json", e, 16, 16, 1024);
 }
+
+/// With `α ≡ 0` (no training phase) the CV bookkeeping must reproduce the balance-heuristic
+/// path tracer sample for sample (same sampler dimensions; only float summation order
+/// differs): checks every `F = f/p` the policy rebuilds from the vertex records.
+#[test]
+fn plain_cv_equals_balance_heuristic_path_per_pixel() {
+    for rel in [
+        "scenes/veach-mis/scene.json",
+        "scenes/many-lights/scene.json",
+        "scenes/envmap/scene.json",
+    ] {
+        let s = load(rel, 16, 12);
+        let opts = RenderOptions::default();
+        let e = Estimator::Cms(CmsOptions {
+            training_spp: 0,
+            relative: false,
+            ..CmsOptions::default()
+        });
+        let (cv, report) = render(&s, e, 4, 9, None, opts);
+        assert_eq!(report.render_spp, 4);
+        let st = render::RenderSettings {
+            spp: 4,
+            seed: 9,
+            mis: render::MisHeuristic::Balance,
+            ..render::RenderSettings::from_scene(&s)
+        };
+        let rs = render::RenderScene::new(&s, &st).unwrap();
+        let (bal, _) = render::render_image(&rs, &st, &opts, &|_, _| {}).unwrap();
+        for (a, b) in cv.pixels.iter().zip(&bal.pixels) {
+            for c in 0..3 {
+                let (x, y) = (a.sum[c], b.sum[c]);
+                assert!(
+                    (x - y).abs() <= 1e-4 * (1.0 + x.abs().max(y.abs())),
+                    "{rel}: {x} vs {y}"
+                );
+            }
+        }
+    }
+}

@@ -25,7 +25,12 @@
 //! `β (Σα + Σ_s R_s (F_s − Σ_k α_k λ_k(x_s)/p(x_s)))` [Hua eq. 17, 27] with `β` the
 //! prefix throughput and `R_s = 1/q` the Russian-roulette factor of the BSDF sample (a
 //! BSDF sample whose path roulette ended is dropped, `R = 0`, which keeps the estimator
-//! unbiased). With `α ≡ 0` this is the balance-heuristic path tracer (the fallback).
+//! unbiased). With `α ≡ 0` this is the balance-heuristic path tracer (the fallback); the
+//! job's `mis` setting does not apply to the controlled direct lighting (balance is what the
+//! CV theory needs [Hua §3.3.2]).
+//!
+//! Cells are grid cells split by the dominant axis and sign of the shading normal
+//! ([`NORMAL_BINS`]), so differently oriented surfaces never share coefficients.
 //!
 //! # Phases and determinism
 //! surrogate (cms with `relative`) → train → solve → render, sample indices
@@ -1174,4 +1179,66 @@ fn surrogate_image(film: &Film) -> Vec<f64> {
     den.chunks_exact(3)
         .map(|c| f64::from(c[0] + c[1] + c[2]) / 3.0)
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn grid_cells_cover_the_bounds_and_clamp_outside() {
+        let g = Grid::new(
+            (Vec3::ZERO, Vec3::new(2.0, 1.0, 1.0)),
+            Some([4, 2, 3]),
+            8,
+            8,
+        )
+        .unwrap();
+        assert_eq!(g.cells(), 24);
+        assert_eq!(g.cell(Vec3::splat(0.01)), 0);
+        assert_eq!(g.cell(Vec3::new(1.99, 0.99, 0.99)), 23);
+        assert_eq!(g.cell(Vec3::splat(-5.0)), 0);
+        assert_eq!(g.cell(Vec3::splat(50.0)), 23);
+        assert_eq!(g.cell(Vec3::splat(f32::NAN)), 0);
+        assert!(Grid::new((Vec3::ZERO, Vec3::ONE), Some([2048, 2048, 1]), 8, 8).is_err());
+        // Adaptive: longest axis max(w, h)/16 clamped to ≥ 8, others proportional.
+        let a = Grid::new((Vec3::ZERO, Vec3::new(4.0, 2.0, 0.0)), None, 256, 128).unwrap();
+        assert_eq!(a.resolution(), [16, 8, 1]);
+        // Empty bounds (no geometry) still give a valid one-cell-per-axis grid.
+        let e = Grid::new(
+            (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
+            Some([1, 1, 1]),
+            4,
+            4,
+        )
+        .unwrap();
+        assert_eq!(e.cell(Vec3::ZERO), 0);
+    }
+
+    #[test]
+    fn normal_bins_are_distinct_per_axis_and_sign() {
+        let bins: Vec<u32> = [Vec3::X, -Vec3::X, Vec3::Y, -Vec3::Y, Vec3::Z, -Vec3::Z]
+            .into_iter()
+            .map(normal_bin)
+            .collect();
+        assert_eq!(bins, vec![0, 1, 2, 3, 4, 5]);
+        assert!(normal_bin(Vec3::splat(f32::NAN)) < NORMAL_BINS);
+    }
+
+    #[test]
+    fn clusters_split_into_k_compact_groups() {
+        let pts: Vec<(u32, Vec3)> = (0..100)
+            .map(|i| (i, Vec3::new((i % 10) as f32, (i / 10) as f32, 0.0)))
+            .collect();
+        let mut out = Vec::new();
+        split_clusters(pts, 7, &mut out);
+        assert_eq!(out.len(), 7);
+        let mut all: Vec<u32> = out.iter().flatten().copied().collect();
+        all.sort_unstable();
+        assert_eq!(all, (0..100).collect::<Vec<_>>());
+        // More clusters than points: one point each.
+        let mut few = Vec::new();
+        split_clusters(vec![(0, Vec3::ZERO), (1, Vec3::ONE)], 5, &mut few);
+        assert_eq!(few.len(), 2);
+    }
 }

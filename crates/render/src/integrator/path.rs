@@ -25,6 +25,13 @@
 //!
 //! Pdfs are solid-angle densities at the shading point.
 //!
+//! An observer with `VertexObserver::CONTROLS_DIRECT` (the CV estimators, `cv.rs`) takes
+//! over the direct lighting of scattering vertices (steps 1–2 for emission found by the
+//! BSDF sample and NEE); `trace` then also traces zero-weight BSDF samples (and stops) and
+//! the shadow rays of zero-valued NEE samples with `p_bsdf > 0`, so every technique's pdf
+//! is known for every sample [Hua §8]. With the default observer nothing changes: `path`
+//! results are bit-identical.
+//!
 //! Sampler dimensions (aligned to the sampler's 4-dimension sets): 0–1 pixel position (2–3
 //! unused); vertex `k` uses the 8 dimensions from `4 + 8k`: light selection (1), light
 //! position (2), BSDF lobe (1), BSDF direction (2), roulette (1), one unused — fixed whether a
