@@ -528,7 +528,7 @@ pub fn run(args: &BenchArgs) -> Result<ExitCode> {
         ),
         match &args.reference {
             Some(p) => format!(
-                "error against the reference `{}` (relMSE ε = 0.01); the reference's own estimated relMSE (noise floor under every figure) is {}",
+                "error against the reference `{}` (relMSE ε = 0.01); the reference's own relMSE estimated from its variance layer (a noise floor under every figure; the estimate assumes independent samples, so it overstates the error of a Sobol-sampled reference) is {}",
                 p.display(),
                 ref_floor.map_or("unknown (no variance layer)".to_string(), |f| format!(
                     "{f:.2e}"

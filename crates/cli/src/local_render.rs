@@ -7,8 +7,9 @@
 //!   (1, then up to twice the previous, capped by the time left at the measured cost per
 //!   sample), and batch films are merged in sample order, so a given batch sequence always
 //!   gives the same image. Estimators with phases (train + render) cannot add samples after
-//!   their solve: a 1-spp pilot measures the cost per spp, then one render with the spp that
-//!   fits the rest of the budget.
+//!   their solve: complete pilot renders at 1, 2, 4, … spp fit a fixed + per-spp cost, then
+//!   one render with the spp that fits the rest of the budget (the image is that render's;
+//!   `seconds` counts all of them).
 
 use std::time::Instant;
 
@@ -71,11 +72,42 @@ pub fn render_budget(
     let start = Instant::now();
     let budget_ms = (budget * 1e3) as u64;
     if st.estimator.has_phases() {
-        let pilot = render_spp(rs, &RenderSettings { spp: 1, ..*st }, options, &|_, _| {})?;
-        let per_spp = pilot.stats.seconds.max(1e-6);
-        let left = (budget - start.elapsed().as_secs_f64()).max(0.0);
-        let spp = ((left / per_spp).floor() as u32).max(1);
-        let mut r = render_spp(rs, &RenderSettings { spp, ..*st }, options, &|_, _| {})?;
+        // Pilots at 1, 2, 4, … spp (each a complete render) until one takes a tenth of the
+        // budget; the last two fit `t(s) = fixed + s · per_spp` (phases have fixed costs:
+        // surrogate, solve); then one render with the spp that fits the rest of the budget.
+        let mut prev: Option<(u32, f64)> = None;
+        let mut spp = 1u32;
+        let mut last = render_spp(rs, &RenderSettings { spp, ..*st }, options, &|_, _| {})?;
+        loop {
+            let t = last.stats.seconds;
+            let left = budget - start.elapsed().as_secs_f64();
+            if t >= budget / 10.0 || 2.0 * t > left || spp >= 1 << 20 {
+                let per_spp = match prev {
+                    Some((s0, t0)) if t > t0 => (t - t0) / f64::from(spp - s0),
+                    _ => t / f64::from(spp),
+                };
+                let fixed = (t - per_spp * f64::from(spp)).max(0.0);
+                let fits = ((left - fixed) / per_spp.max(1e-9)).floor();
+                if fits > f64::from(spp) {
+                    let s_final = fits.min(f64::from(u32::MAX)) as u32;
+                    last = render_spp(
+                        rs,
+                        &RenderSettings {
+                            spp: s_final,
+                            ..*st
+                        },
+                        options,
+                        &|_, _| {},
+                    )?;
+                }
+                break;
+            }
+            prev = Some((spp, t));
+            spp *= 2;
+            last = render_spp(rs, &RenderSettings { spp, ..*st }, options, &|_, _| {})?;
+            progress(start.elapsed().as_millis() as u64, budget_ms);
+        }
+        let mut r = last;
         progress(start.elapsed().as_millis() as u64, budget_ms);
         r.stats.seconds = start.elapsed().as_secs_f64();
         return Ok(r);
