@@ -354,3 +354,30 @@ fn ocv_has_lower_gather_variance_than_path_at_equal_direct_samples_on_checkers()
     );
     assert!(v_ocv < v_path, "ocv {v_ocv} vs path {v_path}");
 }
+
+#[test]
+fn ocv_with_indirect_light_and_chrome_is_unbiased_against_path() {
+    // colour-lamp: 3 lamps, glossy plastic and a chrome (delta) sphere; depth 5 exercises the
+    // continuation (emission after a delta vertex counted once, never after a gather).
+    let scene = load("colour-lamp", 32, 32);
+    let st = |spp, seed, e| RenderSettings {
+        spp,
+        seed,
+        max_depth: 5,
+        estimator: e,
+        ..RenderSettings::from_scene(&scene)
+    };
+    let path = render(&scene, &st(1024, 1, Estimator::Path));
+    let o = OcvOptions {
+        spe: 32,
+        ..OcvOptions::default()
+    };
+    let film = render(&scene, &st(64, 2, Estimator::Ocv(o)));
+    assert_eq!(film.rejected, 0);
+    assert_agree(
+        "colour-lamp d5 ocv vs path",
+        mean_and_se(&film),
+        mean_and_se(&path),
+        5.0,
+    );
+}
