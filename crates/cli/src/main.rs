@@ -9,6 +9,7 @@
 //! - [`bench_cmd`]: `cvfarm bench` — accuracy vs time of several estimators (CSV, markdown, SVG).
 //! - [`estimator_opts`]: `--estimator`, `--opt key=value`, `--estimator-json` → `Estimator`.
 //! - [`local_render`]: fixed-spp and time-budget local rendering shared by `render` and `bench`.
+//! - [`farm`]: `cvfarm serve`, `cvfarm worker`, `cvfarm submit` — the render farm.
 //! - [`cli_error`]: how errors are reported (one line on stderr, exit status).
 //!
 //! Every flag can also be given as an environment variable (`CVFARM_SPP`, `CVFARM_SEED`, …;
@@ -20,6 +21,7 @@ mod bench_cmd;
 mod cli_error;
 mod compare_cmd;
 mod estimator_opts;
+mod farm;
 mod local_render;
 mod render_cmd;
 
@@ -45,6 +47,12 @@ enum Command {
     Compare(compare_cmd::CompareArgs),
     /// Benchmark estimators against `path`: relMSE vs time, equal-time and equal-sample speedups.
     Bench(bench_cmd::BenchArgs),
+    /// Run the farm coordinator (REST API, queue, SQLite or PostgreSQL store).
+    Serve(farm::ServeArgs),
+    /// Run a farm worker: lease tiles from a coordinator, render, upload.
+    Worker(farm::WorkerArgs),
+    /// Submit a scene to a farm; with --wait, show progress and download the results.
+    Submit(farm::SubmitArgs),
 }
 
 fn main() -> ExitCode {
@@ -56,6 +64,9 @@ fn main() -> ExitCode {
         Command::Render(args) => render_cmd::run(&args),
         Command::Compare(args) => compare_cmd::run(&args),
         Command::Bench(args) => bench_cmd::run(&args),
+        Command::Serve(args) => farm::serve(&args),
+        Command::Worker(args) => farm::worker(&args),
+        Command::Submit(args) => farm::submit(&args),
     };
     match result {
         Ok(code) => code,
