@@ -36,9 +36,9 @@
 //! { "spp": 256, "seed": 7, "max_depth": 5, "rr_depth": 6, "mis": "power" }
 //! ```
 
-pub mod ocv;
 pub mod cms;
 pub mod cv;
+pub mod ocv;
 pub mod optimal_mis;
 pub mod path;
 pub mod per_light_cv;
