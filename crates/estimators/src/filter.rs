@@ -1,5 +1,6 @@
 //! Non-local means filtering: prefiltered variances for the composite estimators
-//! [Rou §4.1] and the surrogate denoiser of relative-variance training [Hua §4.2.1, §6.1].
+//! [Rou §4.1]. (The surrogate denoiser of relative-variance training [Hua §4.2.1] is the
+//! à-trous filter in [`crate::denoise`].)
 //!
 //! Joint NL-means in the style of Rousselle et al. 2012 (Buades et al. 2005): the weight of
 //! neighbour `q` for pixel `p` is `exp(−max(0, d²(P, Q))) · exp(−Σ_features ‖f_p − f_q‖²/σ²)`
@@ -21,7 +22,7 @@
 //! | `alpha` | 1.0 | variance cancellation strength |
 //!
 //! ```json
-//! { "surrogate": { "radius": 5, "patch_radius": 1, "k": 0.45, "albedo_sigma": 0.1, "normal_sigma": 0.3 } }
+//! { "variance_prefilter": { "radius": 1, "patch_radius": 1, "k": 0.45, "alpha": 1.0 } }
 //! ```
 //!
 //! # Contracts
@@ -216,36 +217,6 @@ pub fn prefilter_variance(
     options: &NlMeansOptions,
 ) -> Result<Vec<f32>, FilterError> {
     nl_means(variance, 1, color, color_var, &[], width, height, options)
-}
-
-/// Surrogate denoiser for relative-variance training [Hua §4.2.1]: joint NL-means of the
-/// noisy low-spp colour guided by itself, its variance and the albedo/normal features.
-#[allow(clippy::too_many_arguments)]
-pub fn denoise_surrogate(
-    color: &[f32],
-    color_var: &[f32],
-    albedo: Option<&[f32]>,
-    normal: Option<&[f32]>,
-    width: usize,
-    height: usize,
-    options: &NlMeansOptions,
-    albedo_sigma: f32,
-    normal_sigma: f32,
-) -> Result<Vec<f32>, FilterError> {
-    let mut feats = Vec::new();
-    if let Some(a) = albedo {
-        feats.push(Feature {
-            data: a,
-            sigma: albedo_sigma,
-        });
-    }
-    if let Some(nrm) = normal {
-        feats.push(Feature {
-            data: nrm,
-            sigma: normal_sigma,
-        });
-    }
-    nl_means(color, 3, color, color_var, &feats, width, height, options)
 }
 
 #[cfg(test)]

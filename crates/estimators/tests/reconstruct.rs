@@ -244,25 +244,11 @@ fn invalid_buffers_are_typed_errors() {
 }
 
 #[test]
-fn surrogate_denoiser_reduces_relative_error_and_keeps_mean() {
-    use estimators::filter::{NlMeansOptions, denoise_surrogate, prefilter_variance};
+fn prefiltered_variances_stay_non_negative_and_less_noisy() {
+    use estimators::filter::{NlMeansOptions, prefilter_variance};
     let (w, h) = (64, 48);
     let g = ground_truth(w, h);
     let img = noisy(&g, w, h, 0.3, 0.0, 13);
-    // Albedo feature: the bright square's mask.
-    let albedo: Vec<f32> = g
-        .chunks_exact(3)
-        .flat_map(|p| if p[0] > 2.0 { [1.0f32; 3] } else { [0.2; 3] })
-        .collect();
-    let opts = NlMeansOptions {
-        radius: 5,
-        ..NlMeansOptions::default()
-    };
-    let den =
-        denoise_surrogate(&img.f, &img.fv, Some(&albedo), None, w, h, &opts, 0.1, 0.0).unwrap();
-    let (e0, e1) = (compare(&img.f, &g).rel_mse, compare(&den, &g).rel_mse);
-    assert!(e1 < 0.3 * e0, "denoised relMSE {e1} vs noisy {e0}");
-    assert!((mean(&den) - mean(&img.f)).abs() < 0.02 * mean(&img.f));
     // Prefiltered variances stay non-negative and close to the true value on average.
     let mut rng = Pcg64::seed_from_u64(14);
     let sample_var: Vec<f32> = (0..w * h)
