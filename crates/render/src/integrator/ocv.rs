@@ -47,15 +47,12 @@
 use glam::{Vec2, Vec3};
 use serde::{Deserialize, Serialize};
 
-use super::path::{PathSample, vertex_dimension};
+use super::path::{PathSample, camera_hit, vertex_dimension};
 use super::{RenderScene, RenderSettings};
 use crate::accel::Hit;
 use crate::bsdf::Bsdf;
 use crate::math::{Frame, Ray};
 use crate::sampler::Sampler;
-
-/// Most emitters a camera ray passes through with `hide_emitters` before giving up.
-const MAX_HIDDEN_EMITTERS: u32 = 64;
 
 /// Options of the `ocv` estimator (see the module docs for the table).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -381,35 +378,10 @@ pub fn trace(
         rays: 1,
         ..PathSample::default()
     };
-    let mut ray = camera_ray;
-    let mut hit = rs.accel.intersect(&ray);
-    if st.hide_emitters {
-        let mut skipped = 0;
-        while let Some(h) = hit {
-            if h.light.is_none() || skipped >= MAX_HIDDEN_EMITTERS {
-                break;
-            }
-            ray = Ray {
-                o: h.offset_origin(ray.d),
-                d: ray.d,
-                t_max: ray.t_max - h.t,
-            };
-            hit = rs.accel.intersect(&ray);
-            out.rays += 1;
-            skipped += 1;
-        }
-    }
-    let mut radiance = Vec3::ZERO;
-    let Some(mut h) = hit else {
-        if !st.hide_emitters {
-            radiance += lights.env_radiance(ray.d);
-        }
-        out.radiance = radiance;
+    let Some((mut h, mut ray, radiance)) = camera_hit(rs, st, camera_ray, &mut out) else {
         return out;
     };
-    if let Some(l) = h.light {
-        radiance += lights.area_radiance(l, h.ns, -ray.d);
-    }
+    let mut radiance = radiance;
     let mut scratch = Scratch::new(rs, opts);
     let mut beta = Vec3::ONE;
     let mut depth = 0u32;

@@ -42,6 +42,7 @@ use glam::{Vec2, Vec3};
 use super::{
     BsdfTechnique, LightTechnique, RenderScene, RenderSettings, VertexObserver, VertexRecord,
 };
+use crate::accel::Hit;
 use crate::math::{Frame, Ray};
 use crate::sampler::Sampler;
 
@@ -71,26 +72,23 @@ pub fn vertex_dimension(depth: u32) -> u32 {
     CAMERA_DIMS.saturating_add(depth.saturating_mul(DIMS_PER_VERTEX))
 }
 
-/// Traces one camera path starting with `camera_ray` (unit direction), reporting each
-/// scattering vertex to `observer`.
-pub fn trace<O: VertexObserver>(
+/// Traces the camera ray to the first scattering vertex (shared by every estimator).
+///
+/// With `hide_emitters`, camera rays pass through area lights (Mitsuba's
+/// `skip_area_emitters`). Adds the traced rays to `out.rays`. Returns `None` when the ray
+/// escapes — then `out.radiance` already holds the env radiance (unless hidden) — else the
+/// hit, the ray that found it and the emission seen directly at the hit (no MIS: the
+/// camera is a delta "BSDF", Mitsuba's `prev_bsdf_delta = true`).
+pub(crate) fn camera_hit(
     rs: &RenderScene,
     st: &RenderSettings,
     camera_ray: Ray,
-    sampler: &mut Sampler,
-    observer: &mut O,
-) -> PathSample {
-    let max_depth = st.max_depth_u32();
+    out: &mut PathSample,
+) -> Option<(Hit, Ray, Vec3)> {
     let lights = &rs.lights;
-    let mut out = PathSample {
-        rays: 1,
-        ..PathSample::default()
-    };
     let mut ray = camera_ray;
     let mut hit = rs.accel.intersect(&ray);
-
     if st.hide_emitters {
-        // Mitsuba's `skip_area_emitters`: camera rays pass through area lights.
         let mut skipped = 0;
         while let Some(h) = hit {
             if h.light.is_none() || skipped >= MAX_HIDDEN_EMITTERS {
@@ -106,19 +104,38 @@ pub fn trace<O: VertexObserver>(
             skipped += 1;
         }
     }
-
-    let mut radiance = Vec3::ZERO;
-    let Some(mut h) = hit else {
+    let Some(h) = hit else {
         if !st.hide_emitters {
-            radiance += lights.env_radiance(ray.d);
+            out.radiance += lights.env_radiance(ray.d);
         }
-        out.radiance = radiance;
+        return None;
+    };
+    let emitted = match h.light {
+        Some(l) => lights.area_radiance(l, h.ns, -ray.d),
+        None => Vec3::ZERO,
+    };
+    Some((h, ray, emitted))
+}
+
+/// Traces one camera path starting with `camera_ray` (unit direction), reporting each
+/// scattering vertex to `observer`.
+pub fn trace<O: VertexObserver>(
+    rs: &RenderScene,
+    st: &RenderSettings,
+    camera_ray: Ray,
+    sampler: &mut Sampler,
+    observer: &mut O,
+) -> PathSample {
+    let max_depth = st.max_depth_u32();
+    let lights = &rs.lights;
+    let mut out = PathSample {
+        rays: 1,
+        ..PathSample::default()
+    };
+    let Some((mut h, mut ray, radiance)) = camera_hit(rs, st, camera_ray, &mut out) else {
         return out;
     };
-    if let Some(l) = h.light {
-        // Camera hit: no MIS (the previous "BSDF" is a delta, Mitsuba's prev_bsdf_delta = true).
-        radiance += lights.area_radiance(l, h.ns, -ray.d);
-    }
+    let mut radiance = radiance;
 
     let mut beta = Vec3::ONE;
     let mut depth = 0u32;
