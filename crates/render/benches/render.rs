@@ -21,9 +21,13 @@ fn cpu_seconds() -> Option<f64> {
 }
 
 fn main() {
-    let root = PathBuf::from(
-        std::env::var("SCENES_MITSUBA").unwrap_or_else(|_| "/work/shared/scenes-mitsuba".into()),
-    );
+    let root = PathBuf::from(std::env::var("SCENES_MITSUBA").unwrap_or_else(|_| {
+        concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../../../shared/scenes-mitsuba"
+        )
+        .into()
+    }));
     let spp: u32 = std::env::var("RENDER_BENCH_SPP")
         .ok()
         .and_then(|s| s.parse().ok())

@@ -60,9 +60,13 @@ const ROUGHCONDUCTOR: [Case; 4] = [
 ];
 
 fn check(dir: &str, cases: &[Case]) {
-    let root = PathBuf::from(
-        std::env::var("SCENES_MITSUBA").unwrap_or_else(|_| "/work/shared/scenes-mitsuba".into()),
-    );
+    let root = PathBuf::from(std::env::var("SCENES_MITSUBA").unwrap_or_else(|_| {
+        concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../../../shared/scenes-mitsuba"
+        )
+        .into()
+    }));
     let s = scene::load_file(&root.join(dir).join("scene.xml"))
         .unwrap_or_else(|e| panic!("{dir}: {e}"))
         .scene;

@@ -16,9 +16,13 @@ use std::path::PathBuf;
 use render::{RenderOptions, RenderScene, RenderSettings, render_image};
 
 fn scenes_root() -> PathBuf {
-    PathBuf::from(
-        std::env::var("SCENES_MITSUBA").unwrap_or_else(|_| "/work/shared/scenes-mitsuba".into()),
-    )
+    PathBuf::from(std::env::var("SCENES_MITSUBA").unwrap_or_else(|_| {
+        concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../../../shared/scenes-mitsuba"
+        )
+        .into()
+    }))
 }
 
 /// Mitsuba's relMSE at 256 spp for (scene, depth) from the baseline file.
