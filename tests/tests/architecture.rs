@@ -87,15 +87,27 @@ fn render_never_depends_on_the_farm() {
 #[test]
 fn coordinator_never_links_the_renderer() {
     let g = workspace_graph();
-    if g.contains_key("coordinator") {
-        let deps = reachable(&g, "coordinator");
+    assert!(
+        g.contains_key("coordinator"),
+        "the coordinator crate exists"
+    );
+    let deps = reachable(&g, "coordinator");
+    for forbidden in ["render", "worker", "cli"] {
         assert!(
-            !deps.contains("render"),
-            "coordinator depends on render: {deps:?}"
+            !deps.contains(forbidden),
+            "coordinator depends on {forbidden}: {deps:?}"
         );
+    }
+}
+
+#[test]
+fn protocol_is_plain_data_without_the_renderer() {
+    let g = workspace_graph();
+    let deps = reachable(&g, "protocol");
+    for forbidden in ["render", "coordinator", "worker", "cli"] {
         assert!(
-            !deps.contains("worker"),
-            "coordinator depends on worker: {deps:?}"
+            !deps.contains(forbidden),
+            "protocol depends on {forbidden}: {deps:?}"
         );
     }
 }
