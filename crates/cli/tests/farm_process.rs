@@ -7,26 +7,9 @@ use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-/// The `cvfarm` binary, built if needed (this package cannot use `CARGO_BIN_EXE_cvfarm`).
+/// The `cvfarm` binary Cargo built for this package's tests (always current).
 fn cvfarm() -> PathBuf {
-    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
-    let status = Command::new(cargo)
-        .args(["build", "-q", "-p", "cli", "--bin", "cvfarm"])
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .status()
-        .expect("cargo build runs");
-    assert!(status.success(), "building cvfarm failed");
-    // tests/ → workspace root → target/debug/cvfarm (or CARGO_TARGET_DIR).
-    let target = std::env::var("CARGO_TARGET_DIR")
-        .map(PathBuf::from)
-        .unwrap_or_else(|_| {
-            PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-                .join("..")
-                .join("target")
-        });
-    let bin = target.join("debug").join("cvfarm");
-    assert!(bin.exists(), "{} missing", bin.display());
-    bin
+    PathBuf::from(env!("CARGO_BIN_EXE_cvfarm"))
 }
 
 fn free_port() -> u16 {
