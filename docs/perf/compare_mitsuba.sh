@@ -89,7 +89,7 @@ json.dump(doc, open(out_json, "w"), indent=1)
 lines = [
     "# cvfarm vs Mitsuba 3: render speed at equal spp",
     "",
-    "**PRELIMINARY**: measured while other builds and tests were running on the same 2 cores; rerun on",
+    "Timing figures: valid only on an otherwise idle machine (check the load average first); rerun on",
     "an idle machine with `sh docs/perf/compare_mitsuba.sh [SPP]` (from the repository root).",
     "",
     f"Date {datetime.datetime.utcnow():%Y-%m-%d %H:%M} UTC, CPU {cpu}, {threads} threads, {res}x{res}, {spp} spp,",
