@@ -19,7 +19,19 @@ pub const EXIT_USAGE: u8 = 2;
 
 /// Joins the error's cause chain into one line.
 pub fn one_line(e: &anyhow::Error) -> String {
-    let text = format!("{e:#}");
+    // The chain, outermost first; a cause already spelled out by an outer message (thiserror's
+    // `"{path}: {source}"` style) is not repeated.
+    let mut text = String::new();
+    for cause in e.chain() {
+        let part = cause.to_string();
+        if text.contains(&part) {
+            continue;
+        }
+        if !text.is_empty() {
+            text.push_str(": ");
+        }
+        text.push_str(&part);
+    }
     squash(&text)
 }
 
@@ -83,5 +95,26 @@ mod tests {
     fn cause_chain_is_one_line() {
         let e = anyhow::anyhow!("line one\nline two").context("loading scene.json");
         assert_eq!(one_line(&e), "loading scene.json: line one line two");
+    }
+
+    /// Regression: a missing scene file printed the OS error twice (once in the scene
+    /// error's own message, once as its source).
+    #[test]
+    fn a_cause_already_in_the_message_is_not_repeated() {
+        let io = std::io::Error::new(std::io::ErrorKind::NotFound, "No such file");
+        #[derive(Debug)]
+        struct Wrapped(std::io::Error);
+        impl std::fmt::Display for Wrapped {
+            fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                write!(f, "nope.json: {}", self.0)
+            }
+        }
+        impl std::error::Error for Wrapped {
+            fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+                Some(&self.0)
+            }
+        }
+        let e = anyhow::Error::new(Wrapped(io)).context("loading nope.json");
+        assert_eq!(one_line(&e), "loading nope.json: nope.json: No such file");
     }
 }
