@@ -7,53 +7,29 @@
 use std::hint::black_box;
 use std::time::Instant;
 
-use glam::{Mat3, Mat4, Vec2, Vec3};
+use glam::{Mat3, Vec2, Vec3};
 use render::chi2::Pcg32;
 use render::light::{LightSelection, Lights};
-use scene::{Camera, Environment, Film, IntegratorSettings, Mesh, RgbImage, Scene, Sphere};
+use scene::{Environment, Mesh, RgbImage};
 
-fn scene(meshes: Vec<Mesh>, spheres: Vec<Sphere>, environment: Option<Environment>) -> Scene {
-    Scene {
-        camera: Camera {
-            to_world: Mat4::IDENTITY,
-            fov_x_deg: 45.0,
-            near_clip: 0.01,
-            far_clip: 1e4,
-        },
-        film: Film {
-            width: 4,
-            height: 4,
-        },
-        integrator: IntegratorSettings {
-            max_depth: 2,
-            rr_depth: 5,
-            hide_emitters: false,
-            sample_count: None,
-        },
-        textures: Vec::new(),
-        materials: Vec::new(),
-        meshes,
-        spheres,
-        environment,
-    }
-}
+// The scene builders of the light tests (one definition for tests and this benchmark).
+#[path = "../tests/light_support/mod.rs"]
+mod light_support;
+use light_support::{mesh, scene, sphere};
 
 /// A small quad facing −y at height 1.999 (the many-lights ceiling lamps).
 fn lamp(x: f32, z: f32) -> Mesh {
     let h = 0.03;
-    Mesh {
-        positions: vec![
+    mesh(
+        vec![
             Vec3::new(x - h, 1.999, z - h),
             Vec3::new(x + h, 1.999, z - h),
             Vec3::new(x + h, 1.999, z + h),
             Vec3::new(x - h, 1.999, z + h),
         ],
-        normals: None,
-        uvs: None,
-        indices: vec![[0, 1, 2], [0, 2, 3]],
-        material: 0,
-        emitter: Some(Vec3::new(5.0, 4.0, 3.0)),
-    }
+        vec![[0, 1, 2], [0, 2, 3]],
+        Some(Vec3::new(5.0, 4.0, 3.0)),
+    )
 }
 
 /// A flat grid of `2 n²` triangles with strongly varying areas, facing −y at height 2.
@@ -74,14 +50,7 @@ fn big_mesh(n: u32) -> Mesh {
             indices.push([p, p + n + 2, p + n + 1]);
         }
     }
-    Mesh {
-        positions,
-        normals: None,
-        uvs: None,
-        indices,
-        material: 0,
-        emitter: Some(Vec3::ONE),
-    }
+    mesh(positions, indices, Some(Vec3::ONE))
 }
 
 fn synthetic_map(width: u32, height: u32) -> RgbImage {
@@ -258,22 +227,8 @@ fn main() {
 
     // Sphere lights, seen from outside and from inside.
     let spheres = vec![
-        Sphere {
-            center: Vec3::new(0.0, 3.0, 0.0),
-            radius: 0.3,
-            flip_normals: false,
-            frame: Mat3::IDENTITY,
-            material: 0,
-            emitter: Some(Vec3::ONE),
-        },
-        Sphere {
-            center: Vec3::ZERO,
-            radius: 10.0,
-            flip_normals: true,
-            frame: Mat3::IDENTITY,
-            material: 0,
-            emitter: Some(Vec3::ONE),
-        },
+        sphere(Vec3::new(0.0, 3.0, 0.0), 0.3, false, Some(Vec3::ONE)),
+        sphere(Vec3::ZERO, 10.0, true, Some(Vec3::ONE)),
     ];
     let lights = Lights::new(&scene(vec![], spheres, None), LightSelection::Uniform);
     time(
