@@ -50,8 +50,8 @@ pub fn option_names(kind: &str) -> Vec<String> {
         .unwrap_or_default()
 }
 
-/// Parses one `key=value`.
-fn parse_opt(text: &str) -> Result<(String, Value), UsageError> {
+/// Parses one `--opt key=value` (the value as JSON when it parses, else as a string).
+pub fn parse_opt(text: &str) -> Result<(String, Value), UsageError> {
     let (k, v) = text
         .split_once('=')
         .ok_or_else(|| UsageError(format!("--opt `{text}`: expected KEY=VALUE")))?;

@@ -243,11 +243,8 @@ fn estimator_json(kind: &str, opts: &[String]) -> Result<serde_json::Value> {
     let mut m = serde_json::Map::new();
     m.insert("kind".into(), kind.into());
     for o in opts {
-        let (k, v) = o
-            .split_once('=')
-            .ok_or_else(|| anyhow!("--opt expects KEY=VALUE, not `{o}`"))?;
-        let v = serde_json::from_str(v).unwrap_or_else(|_| serde_json::Value::String(v.to_owned()));
-        m.insert(k.to_owned(), v);
+        let (k, v) = crate::estimator_opts::parse_opt(o)?;
+        m.insert(k, v);
     }
     Ok(serde_json::Value::Object(m))
 }
@@ -292,15 +289,7 @@ impl Api {
 
 /// `cvfarm submit`.
 pub fn submit(args: &SubmitArgs) -> Result<ExitCode> {
-    let params: Vec<(String, String)> = args
-        .define
-        .iter()
-        .map(|d| {
-            d.split_once('=')
-                .map(|(k, v)| (k.to_owned(), v.to_owned()))
-                .ok_or_else(|| anyhow!("-D expects KEY=VALUE, not `{d}`"))
-        })
-        .collect::<Result<_>>()?;
+    let params = crate::render_cmd::parse_defines(&args.define)?;
     let (desc, _warnings) = scene::read_desc_file(&args.scene, &params)
         .with_context(|| format!("reading {}", args.scene.display()))?;
     let dir = args.scene.parent().unwrap_or(Path::new(".")).to_path_buf();

@@ -246,6 +246,19 @@ pub fn settings(scene: &scene::Scene, args: &RenderArgs) -> Result<RenderSetting
     Ok(st)
 }
 
+/// Parses `--define KEY=VALUE`s into Mitsuba XML parameters (`render` and `submit` alike).
+pub fn parse_defines(define: &[String]) -> Result<Vec<(String, String)>> {
+    define
+        .iter()
+        .map(|d| {
+            let (k, v) = d
+                .split_once('=')
+                .with_context(|| format!("--define `{d}`: expected KEY=VALUE"))?;
+            Ok((k.trim().to_string(), v.trim().to_string()))
+        })
+        .collect()
+}
+
 /// Reads the scene description (JSON or Mitsuba XML with `--define`s), applies `--res` to it
 /// (so that `fov_axis` is resolved for the new size, as Mitsuba does) and loads its assets.
 /// Load warnings are printed on stderr.
@@ -259,13 +272,7 @@ pub fn load_scene_file(
     define: &[String],
     res: Option<Resolution>,
 ) -> Result<scene::Scene> {
-    let mut params = Vec::with_capacity(define.len());
-    for d in define {
-        let (k, v) = d
-            .split_once('=')
-            .with_context(|| format!("--define `{d}`: expected KEY=VALUE"))?;
-        params.push((k.trim().to_string(), v.trim().to_string()));
-    }
+    let params = parse_defines(define)?;
     let (mut desc, mut warnings) = scene::read_desc_file(path, &params)
         .with_context(|| format!("loading {}", path.display()))?;
     if let Some(res) = res {
