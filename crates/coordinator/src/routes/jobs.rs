@@ -245,6 +245,20 @@ async fn load_job(st: &AppState, id: Result<Path<i64>, PathRejection>) -> AppRes
         .ok_or_else(|| AppError::NotFound(format!("job {id}")))
 }
 
+/// The job's row read again (after a state change).
+async fn reload(st: &AppState, id: i64) -> AppResult<JobRow> {
+    st.store
+        .job(id)
+        .await?
+        .ok_or_else(|| AppError::NotFound(format!("job {id}")))
+}
+
+/// The API status of a job row, with its current phase's progress.
+async fn status_of(st: &AppState, job: JobRow) -> AppResult<JobStatus> {
+    let progress = st.store.progress(job.id, job.phase_idx).await?;
+    job_status(&job, progress)
+}
+
 async fn status(
     State(st): State<Arc<AppState>>,
     headers: HeaderMap,
@@ -252,8 +266,7 @@ async fn status(
 ) -> AppResult<Json<JobStatus>> {
     require_token(&headers, &st.config.client_tokens)?;
     let job = load_job(&st, id).await?;
-    let progress = st.store.progress(job.id, job.phase_idx).await?;
-    Ok(Json(job_status(&job, progress)?))
+    Ok(Json(status_of(&st, job).await?))
 }
 
 async fn list(
@@ -263,8 +276,7 @@ async fn list(
     require_token(&headers, &st.config.client_tokens)?;
     let mut out = Vec::new();
     for job in st.store.jobs(1000).await? {
-        let progress = st.store.progress(job.id, job.phase_idx).await?;
-        out.push(job_status(&job, progress)?);
+        out.push(status_of(&st, job).await?);
     }
     Ok(Json(out))
 }
@@ -286,13 +298,7 @@ async fn cancel(
             format!("job {} is {}", job.id, job.state.as_str()),
         ));
     }
-    let job = st
-        .store
-        .job(job.id)
-        .await?
-        .ok_or_else(|| AppError::NotFound(format!("job {}", job.id)))?;
-    let progress = st.store.progress(job.id, job.phase_idx).await?;
-    Ok(Json(job_status(&job, progress)?))
+    Ok(Json(status_of(&st, reload(&st, job.id).await?).await?))
 }
 
 async fn pause(
@@ -329,13 +335,7 @@ async fn set_paused(
     if !pause {
         st.work_available.notify_waiters();
     }
-    let job = st
-        .store
-        .job(job.id)
-        .await?
-        .ok_or_else(|| AppError::NotFound(format!("job {}", job.id)))?;
-    let progress = st.store.progress(job.id, job.phase_idx).await?;
-    Ok(Json(job_status(&job, progress)?))
+    Ok(Json(status_of(st, reload(st, job.id).await?).await?))
 }
 
 async fn output(
