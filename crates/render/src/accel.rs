@@ -1,5 +1,8 @@
-//! Ray–scene intersection: one obvhs CWBVH (8-wide compressed BVH) over every triangle of
-//! every mesh plus the analytic spheres, which are intersected in the traversal closure.
+//! Ray–scene intersection: one BVH over every triangle of every mesh plus the analytic
+//! spheres. Scenes of up to [`WIDE_MAX_PRIMS`] primitives use our own 8-wide BVH with SoA
+//! triangle packets ([`wide`]); larger ones obvhs' CWBVH (8-wide compressed BVH), with the
+//! triangles and spheres intersected in its traversal closure. Both use the same triangle test
+//! and return the same hits ([`AccelKind`] forces one for tests and benchmarks).
 //!
 //! Contract:
 //! - [`Accel::intersect`] returns the closest [`Hit`] with `t ∈ (0, ray.t_max)`; the ray
@@ -33,6 +36,34 @@ use obvhs::{BvhBuildParams, aabb::Aabb, cwbvh::CwBvh, cwbvh::builder::build_cwbv
 use scene::MaterialId;
 
 use crate::math::Ray;
+
+mod wide;
+
+pub use wide::WIDE_MAX_PRIMS;
+use wide::WideBvh;
+
+/// Which BVH an [`Accel`] uses.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum AccelKind {
+    /// [`AccelKind::Wide`] up to [`WIDE_MAX_PRIMS`] primitives, else [`AccelKind::Cwbvh`].
+    #[default]
+    Auto,
+    /// Our 8-wide BVH with SoA triangle packets (fast for small scenes).
+    Wide,
+    /// obvhs' compressed wide BVH (fast to build and traverse for large meshes).
+    Cwbvh,
+}
+
+/// The BVH of an [`Accel`].
+#[derive(Clone, Debug)]
+enum Bvh {
+    /// No geometry.
+    Empty,
+    /// [`WideBvh`] over `Accel::prims` in scene order.
+    Wide(WideBvh),
+    /// obvhs CWBVH; `Accel::prims` is in BVH order.
+    Cwbvh(CwBvh),
+}
 
 /// Mitsuba's `RayEpsilon` for f32: 1500 · 2⁻²⁴.
 pub const RAY_EPSILON: f32 = 1500.0 * f32::EPSILON * 0.5;
@@ -126,6 +157,8 @@ struct Prim {
     shape: u32,
     /// Triangle index within the mesh (0 for spheres).
     index: u32,
+    /// Unit face normal `normalize((b − a) × (c − a))` of a triangle (zero for spheres).
+    ng: Vec3,
 }
 
 /// Per-mesh data needed to finish a hit.
@@ -153,7 +186,7 @@ struct SphereGeom {
 /// The acceleration structure of a scene.
 #[derive(Clone, Debug)]
 pub struct Accel {
-    bvh: Option<CwBvh>,
+    bvh: Bvh,
     prims: Vec<Prim>,
     meshes: Vec<MeshGeom>,
     spheres: Vec<SphereGeom>,
@@ -178,6 +211,16 @@ impl Accel {
         mesh_lights: &[Option<u32>],
         sphere_lights: &[Option<u32>],
     ) -> Self {
+        Self::with_kind(scene, mesh_lights, sphere_lights, AccelKind::Auto)
+    }
+
+    /// [`Accel::new`] with an explicit choice of BVH.
+    pub fn with_kind(
+        scene: &scene::Scene,
+        mesh_lights: &[Option<u32>],
+        sphere_lights: &[Option<u32>],
+        kind: AccelKind,
+    ) -> Self {
         let mut prims = Vec::new();
         let mut aabbs = Vec::new();
         for (mi, mesh) in scene.meshes.iter().enumerate() {
@@ -189,6 +232,7 @@ impl Accel {
                     c: p2,
                     shape: mi as u32,
                     index: ti as u32,
+                    ng: (p1 - p0).cross(p2 - p0).normalize(),
                 });
                 aabbs.push(Aabb::new(
                     Vec3A::from(p0.min(p1).min(p2)),
@@ -203,6 +247,7 @@ impl Accel {
                 c: Vec3::ZERO,
                 shape: SPHERE_BIT | si as u32,
                 index: 0,
+                ng: Vec3::ZERO,
             });
             let r = Vec3::splat(s.radius);
             aabbs.push(Aabb::new(
@@ -216,8 +261,18 @@ impl Accel {
             bounds_min = bounds_min.min(b.min.into());
             bounds_max = bounds_max.max(b.max.into());
         }
+        let wide = match kind {
+            AccelKind::Auto => prims.len() <= WIDE_MAX_PRIMS,
+            AccelKind::Wide => true,
+            AccelKind::Cwbvh => false,
+        };
         let (bvh, prims) = if aabbs.is_empty() {
-            (None, prims)
+            (Bvh::Empty, prims)
+        } else if wide {
+            match WideBvh::new(&prims) {
+                Some(w) => (Bvh::Wide(w), prims),
+                None => (Bvh::Empty, prims),
+            }
         } else {
             let bvh = build_cwbvh(
                 &aabbs,
@@ -230,7 +285,7 @@ impl Accel {
                 .iter()
                 .map(|&i| prims[i as usize])
                 .collect();
-            (Some(bvh), ordered)
+            (Bvh::Cwbvh(bvh), ordered)
         };
         let meshes = scene
             .meshes
@@ -267,6 +322,15 @@ impl Accel {
         }
     }
 
+    /// Which BVH was built ([`AccelKind::Wide`] or [`AccelKind::Cwbvh`]; `Auto` when empty).
+    pub fn kind(&self) -> AccelKind {
+        match self.bvh {
+            Bvh::Empty => AccelKind::Auto,
+            Bvh::Wide(_) => AccelKind::Wide,
+            Bvh::Cwbvh(_) => AccelKind::Cwbvh,
+        }
+    }
+
     /// Number of BVH primitives (triangles + spheres).
     pub fn primitive_count(&self) -> usize {
         self.prims.len()
@@ -280,7 +344,15 @@ impl Accel {
     /// Closest hit along `ray` (unit direction) with `t ∈ (0, ray.t_max)`.
     #[inline]
     pub fn intersect(&self, ray: &Ray) -> Option<Hit> {
-        let bvh = self.bvh.as_ref()?;
+        let bvh = match &self.bvh {
+            Bvh::Empty => return None,
+            Bvh::Wide(w) => {
+                let shear = RayShear::new(ray.o, ray.d + Vec3::ZERO);
+                let (prim, t, u, v) = w.intersect(&self.prims, &shear, ray.t_max)?;
+                return Some(self.finish_hit(ray, t, RawHit { prim, u, v }));
+            }
+            Bvh::Cwbvh(b) => b,
+        };
         let r = obvhs_ray(ray.o, ray.d, ray.t_max);
         let mut hit = RayHit::none();
         let mut raw = RawHit {
@@ -312,8 +384,12 @@ impl Accel {
     /// Whether anything blocks the segment `o + t·d`, `t ∈ (0, t_max)` (any hit; `d` unit).
     #[inline]
     pub fn occluded(&self, o: Vec3, d: Vec3, t_max: f32) -> bool {
-        let Some(bvh) = self.bvh.as_ref() else {
-            return false;
+        let bvh = match &self.bvh {
+            Bvh::Empty => return false,
+            Bvh::Wide(w) => {
+                return w.occluded(&self.prims, &RayShear::new(o, d + Vec3::ZERO), t_max);
+            }
+            Bvh::Cwbvh(b) => b,
         };
         let r = obvhs_ray(o, d, t_max);
         let shear = RayShear::new(o, d + Vec3::ZERO);
@@ -359,7 +435,7 @@ impl Accel {
             let (b1, b2) = (raw.u, raw.v);
             let b0 = 1.0 - b1 - b2;
             let p = prim.a * b0 + prim.b * b1 + prim.c * b2;
-            let ng = (prim.b - prim.a).cross(prim.c - prim.a).normalize();
+            let ng = prim.ng;
             let ns = match &m.normals {
                 Some(n) => {
                     let v = n[idx[0]] * b0 + n[idx[1]] * b1 + n[idx[2]] * b2;

@@ -25,15 +25,19 @@ const SOBOL_MAX_SAMPLES: u32 = 1 << 16;
 
 /// A sampler positioned at one (pixel, sample index); cheap to create (no allocation).
 ///
-/// Sobol points are computed four dimensions at a time (`sobol_burley::sample_4d`, SIMD) and
-/// cached, so sequential draws cost a quarter of a point evaluation each.
+/// Sobol points are computed four dimensions at a time and cached, so sequential draws cost a
+/// quarter of a point evaluation each. The values are exactly `sobol_burley::sample_4d`'s
+/// (checked in the tests); the part of it that depends only on (pixel, sample index) — the
+/// Owen-shuffled sample index — is computed once per sampler instead of once per 4 dimensions.
 #[derive(Clone, Copy, Debug)]
 pub struct Sampler {
     seed: u64,
     pixel: u32,
     sample_index: u32,
-    /// Per-pixel scramble seed of the Sobol sequence.
-    scramble: u32,
+    /// `sobol_burley`'s bit-reversed, Owen-shuffled sample index for `scramble`.
+    shuffled_rev_index: u32,
+    /// `sobol_burley`'s per-dimension scramble base (`scramble · 0x9c8f2d3b`).
+    scramble_mul: u32,
     dimension: u32,
     /// Dimension set (dimensions `4·set .. 4·set + 3`) held in `cache`; `u32::MAX` = none.
     cached_set: u32,
@@ -45,13 +49,16 @@ impl Sampler {
     /// in a job with seed `seed`, positioned at dimension 0.
     #[inline]
     pub fn new(seed: u64, pixel: u32, sample_index: u32) -> Self {
-        let scramble = (mix64(seed ^ mix64(u64::from(pixel).wrapping_add(0x9e37_79b9_7f4a_7c15)))
-            >> 32) as u32;
+        let scramble = pixel_scramble(seed, pixel);
         Self {
             seed,
             pixel,
             sample_index,
-            scramble,
+            shuffled_rev_index: sobol_burley::parts::owen_scramble_rev(
+                sample_index.reverse_bits(),
+                sobol_burley::parts::hash(scramble ^ 0x79c6_8e4a),
+            ),
+            scramble_mul: scramble.wrapping_mul(0x9c8f_2d3b),
             dimension: 0,
             cached_set: u32::MAX,
             cache: [0.0; 4],
@@ -76,7 +83,7 @@ impl Sampler {
         if dim < SOBOL_DIMENSIONS && self.sample_index < SOBOL_MAX_SAMPLES {
             // Decorrelate dimensions of the same pixel: sobol_burley scrambles each dimension
             // with `hash(seed, dimension)`, so one seed per pixel suffices.
-            sobol_burley::sample_4d(self.sample_index, dim / 4, self.scramble)[(dim % 4) as usize]
+            self.sobol_4d(dim / 4)[(dim % 4) as usize]
         } else {
             self.hashed(dim)
         }
@@ -90,7 +97,7 @@ impl Sampler {
         if dim < SOBOL_DIMENSIONS && self.sample_index < SOBOL_MAX_SAMPLES {
             let set = dim / 4;
             if set != self.cached_set {
-                self.cache = sobol_burley::sample_4d(self.sample_index, set, self.scramble);
+                self.cache = self.sobol_4d(set);
                 self.cached_set = set;
             }
             self.cache[(dim % 4) as usize]
@@ -107,6 +114,25 @@ impl Sampler {
         Vec2::new(x, y)
     }
 
+    /// Dimensions `4·set .. 4·set + 3` of this sample's Owen-scrambled Sobol point: the steps
+    /// of `sobol_burley::sample_4d(sample_index, set, scramble)` after the index shuffle.
+    #[inline]
+    fn sobol_4d(&self, set: u32) -> [f32; 4] {
+        use sobol_burley::parts::{Int4, hash_int4, owen_scramble_int4_rev, sobol_int4_rev};
+        let sobol = sobol_int4_rev(self.shuffled_rev_index, set);
+        let base = self.scramble_mul ^ set;
+        let scramble: Int4 = [
+            base ^ 0x912f_69ba,
+            base ^ 0x174f_18ab,
+            base ^ 0x691e_72ca,
+            base ^ 0xb40c_c1b8,
+        ]
+        .into();
+        owen_scramble_int4_rev(sobol, hash_int4(scramble))
+            .reverse_bits()
+            .to_f32_norm()
+    }
+
     /// White-noise fallback keyed by (seed, pixel, sample, dimension).
     fn hashed(&self, dim: u32) -> f32 {
         let mut h = mix64(self.seed ^ 0xd1b5_4a32_d192_ed03);
@@ -115,6 +141,12 @@ impl Sampler {
         // 24 high bits → exactly representable in f32, strictly below 1.
         (h >> 40) as f32 * (1.0 / (1u64 << 24) as f32)
     }
+}
+
+/// Per-pixel scramble seed of the Sobol sequence (sobol_burley's `seed`).
+#[inline]
+fn pixel_scramble(seed: u64, pixel: u32) -> u32 {
+    (mix64(seed ^ mix64(u64::from(pixel).wrapping_add(0x9e37_79b9_7f4a_7c15))) >> 32) as u32
 }
 
 /// A 64-bit finaliser (splitmix64 / Stafford variant 13): a bijective, well-mixing hash.
@@ -149,6 +181,19 @@ mod tests {
         }
         a.set_dimension(1);
         assert_eq!(a.next_1d().to_bits(), b.get(1).to_bits());
+    }
+
+    #[test]
+    fn cached_index_shuffle_gives_sobol_burley_values() {
+        for (seed, pixel, sample) in [(0u64, 0u32, 0u32), (7, 123, 45), (99, 65_535, 65_535)] {
+            let s = Sampler::new(seed, pixel, sample);
+            for set in [0, 1, 7, SOBOL_DIMENSIONS / 4 - 1] {
+                let want = sobol_burley::sample_4d(sample, set, pixel_scramble(seed, pixel));
+                for k in 0..4 {
+                    assert_eq!(s.get(4 * set + k).to_bits(), want[k as usize].to_bits());
+                }
+            }
+        }
     }
 
     #[test]

@@ -1,0 +1,771 @@
+//! The BVH for scenes of up to [`WIDE_MAX_PRIMS`] primitives: an 8-wide BVH whose nodes keep
+//! their children's boxes in SoA and whose leaves are **packets** of up to 8 triangles in SoA,
+//! so that one box test or one triangle test covers 8 children or triangles at once (the loops
+//! over the 8 lanes are written so that LLVM turns them into AVX2 code on x86-64-v3).
+//!
+//! Why: the test scenes (the Cornell box: 36 triangles, the many-lights room: ~170) are tiny;
+//! there obvhs' compressed CWBVH spends most of a ray in node decoding. Large meshes keep the
+//! CWBVH (see [`super::AccelKind`]).
+//!
+//! Contract (same as [`super::Accel`]):
+//! - the triangle test is the watertight test of [`super::intersect_prim`], evaluated lane by
+//!   lane with the same operations in the same order, so a packet lane returns bit-for-bit what
+//!   the scalar test returns for that triangle (including the f64 fallback on exact zeros);
+//! - box tests are conservative: the exit distance is scaled up by `1 + 2γ₃` (Ize 2013,
+//!   "Robust BVH ray traversal"), zero direction components use a huge finite reciprocal
+//!   (no `0 · ∞`), so a triangle on a box face is never culled by rounding;
+//! - spheres are leaves of their own, intersected by [`super::intersect_sphere`];
+//! - the closest hit is found with ordered (near-first) traversal; [`WideBvh::occluded`]
+//!   stops at the first hit.
+//!
+//! Build: top-down binned SAH (16 bins per axis on centroids). Each node takes up to 8
+//! clusters obtained by repeatedly splitting its largest cluster; a cluster of ≤ 8 triangles
+//! (or one sphere) becomes a leaf, and leaf clusters are split further only while slots are
+//! free and the split shrinks the summed box area (fewer packet tests per ray). Below depth
+//! [`MEDIAN_DEPTH`] splits are object medians, which bounds the depth and the traversal stack.
+
+use glam::Vec3;
+
+use super::{Prim, RayShear, SPHERE_BIT, intersect_sphere};
+
+/// Lanes of a node or packet.
+pub(super) const LANES: usize = 8;
+/// Largest primitive count for which [`super::AccelKind::Auto`] picks this BVH.
+pub const WIDE_MAX_PRIMS: usize = 1 << 16;
+/// From this binary split depth on, splits are object medians (bounded depth).
+const MEDIAN_DEPTH: u32 = 24;
+/// Traversal stack entries. The build computes the most a traversal can need and gives up
+/// (the caller falls back to the CWBVH) when a tree would need more.
+const STACK: usize = 64;
+/// SAH bins per axis.
+const BINS: usize = 16;
+/// Ize's `1 + 2γ₃` with `γ₃ = 3u / (1 − 3u)`, `u = 2⁻²⁴`.
+const TFAR_SCALE: f32 = 1.0 + 2.0 * (3.0 * f32::EPSILON * 0.5) / (1.0 - 3.0 * f32::EPSILON * 0.5);
+
+/// Child reference tags (top two bits) and the empty slot.
+const TAG_SHIFT: u32 = 30;
+const TAG_INNER: u32 = 0;
+const TAG_PACKET: u32 = 1;
+const TAG_SPHERE: u32 = 2;
+const INDEX_MASK: u32 = (1 << TAG_SHIFT) - 1;
+const EMPTY: u32 = u32::MAX;
+
+/// Eight floats, one per lane.
+#[derive(Clone, Copy, Debug)]
+#[repr(C, align(32))]
+struct F8([f32; LANES]);
+
+/// An inner node: the boxes of up to 8 children (empty slots have `min = +∞`, `max = −∞`).
+#[derive(Clone, Debug)]
+struct Node {
+    /// Box minima per axis.
+    min: [F8; 3],
+    /// Box maxima per axis.
+    max: [F8; 3],
+    /// Child references (tagged), [`EMPTY`] for unused slots.
+    child: [u32; LANES],
+}
+
+/// Up to 8 triangles; unused lanes hold NaN vertices, which never pass the test.
+#[derive(Clone, Debug)]
+struct Packet {
+    /// `v[vertex][axis]`.
+    v: [[F8; 3]; 3],
+    /// Index into the accel's primitive list per lane.
+    prim: [u32; LANES],
+}
+
+/// The 8-wide BVH (see the module docs).
+#[derive(Clone, Debug)]
+pub(super) struct WideBvh {
+    nodes: Vec<Node>,
+    packets: Vec<Packet>,
+    /// Tagged reference of the root (a leaf when the scene fits in one).
+    root: u32,
+}
+
+/// A hit found by traversal: primitive index, `t` and barycentrics `(b1, b2)`.
+pub(super) type WideHit = (u32, f32, f32, f32);
+
+/// A primitive during the build.
+#[derive(Clone, Copy, Debug)]
+struct Item {
+    lo: Vec3,
+    hi: Vec3,
+    centroid: Vec3,
+    prim: u32,
+    sphere: bool,
+}
+
+/// Surface area of a box (0 for an empty box).
+#[inline]
+fn area(lo: Vec3, hi: Vec3) -> f32 {
+    let e = (hi - lo).max(Vec3::ZERO);
+    2.0 * (e.x * e.y + e.y * e.z + e.z * e.x)
+}
+
+fn bounds(items: &[Item]) -> (Vec3, Vec3) {
+    items.iter().fold(
+        (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
+        |(lo, hi), it| (lo.min(it.lo), hi.max(it.hi)),
+    )
+}
+
+/// Whether a cluster may be a leaf: ≤ 8 triangles, or exactly one sphere.
+fn leafable(items: &[Item]) -> bool {
+    items.len() == 1 || (items.len() <= LANES && items.iter().all(|it| !it.sphere))
+}
+
+impl WideBvh {
+    /// Builds the BVH over `prims` (lanes and leaves refer to `prims` by index).
+    pub(super) fn new(prims: &[Prim]) -> Option<Self> {
+        let mut items: Vec<Item> = prims
+            .iter()
+            .enumerate()
+            .map(|(i, p)| {
+                let (lo, hi) = if p.shape & SPHERE_BIT != 0 {
+                    let r = Vec3::splat(p.b.x.abs());
+                    (p.a - r, p.a + r)
+                } else {
+                    (p.a.min(p.b).min(p.c), p.a.max(p.b).max(p.c))
+                };
+                Item {
+                    lo,
+                    hi,
+                    centroid: 0.5 * (lo + hi),
+                    prim: i as u32,
+                    sphere: p.shape & SPHERE_BIT != 0,
+                }
+            })
+            .collect();
+        if items.is_empty() {
+            return None;
+        }
+        let mut bvh = WideBvh {
+            nodes: Vec::new(),
+            packets: Vec::new(),
+            root: EMPTY,
+        };
+        let (root, need) = bvh.build(prims, &mut items, 0);
+        bvh.root = root;
+        // `need` entries above the root's own slot: the fixed-size stacks must hold them.
+        (need < STACK).then_some(bvh)
+    }
+
+    /// Builds the subtree of `items` and returns its tagged reference and the traversal stack
+    /// entries it may need beyond its own: an inner node with `k` children pushes `k` after
+    /// being popped, and any child may be processed first, so `k − 1 + max(child need)`.
+    fn build(&mut self, prims: &[Prim], items: &mut [Item], depth: u32) -> (u32, usize) {
+        if leafable(items) {
+            return (self.leaf(prims, items), 0);
+        }
+        // Clusters as ranges of `items`, split until 8 or nothing worth splitting.
+        let mut clusters: Vec<(usize, usize)> = vec![(0, items.len())];
+        loop {
+            if clusters.len() == LANES {
+                break;
+            }
+            // Prefer splitting clusters that cannot be leaves (largest area first); then
+            // leaf clusters whose split shrinks the summed area.
+            let mut pick = None;
+            let mut pick_area = f32::NEG_INFINITY;
+            for (k, &(s, e)) in clusters.iter().enumerate() {
+                if !leafable(&items[s..e]) {
+                    let (lo, hi) = bounds(&items[s..e]);
+                    let a = area(lo, hi);
+                    if a > pick_area {
+                        pick_area = a;
+                        pick = Some(k);
+                    }
+                }
+            }
+            let k = match pick {
+                Some(k) => k,
+                None => {
+                    // All leaves: split the one whose split gains most, if any gains.
+                    let mut best = None;
+                    let mut best_gain = 0.0f32;
+                    for (k, &(s, e)) in clusters.iter().enumerate() {
+                        if e - s < 2 {
+                            continue;
+                        }
+                        let (lo, hi) = bounds(&items[s..e]);
+                        let a = area(lo, hi);
+                        let mut trial = items[s..e].to_vec();
+                        let m = split(&mut trial, depth);
+                        let (l0, h0) = bounds(&trial[..m]);
+                        let (l1, h1) = bounds(&trial[m..]);
+                        let gain = a - (area(l0, h0) + area(l1, h1));
+                        if gain > 0.1 * a && gain > best_gain {
+                            best_gain = gain;
+                            best = Some(k);
+                        }
+                    }
+                    match best {
+                        Some(k) => k,
+                        None => break,
+                    }
+                }
+            };
+            let (s, e) = clusters[k];
+            let m = s + split(&mut items[s..e], depth);
+            clusters[k] = (s, m);
+            clusters.push((m, e));
+        }
+        let index = self.nodes.len();
+        self.nodes.push(Node {
+            min: [F8([f32::INFINITY; LANES]); 3],
+            max: [F8([f32::NEG_INFINITY; LANES]); 3],
+            child: [EMPTY; LANES],
+        });
+        let mut need = 0;
+        for (lane, &(s, e)) in clusters.iter().enumerate() {
+            let (lo, hi) = bounds(&items[s..e]);
+            let (child, child_need) = self.build(prims, &mut items[s..e], depth + 1);
+            need = need.max(child_need);
+            let node = &mut self.nodes[index];
+            for axis in 0..3 {
+                node.min[axis].0[lane] = lo[axis];
+                node.max[axis].0[lane] = hi[axis];
+            }
+            node.child[lane] = child;
+        }
+        (
+            (TAG_INNER << TAG_SHIFT) | index as u32,
+            clusters.len() - 1 + need,
+        )
+    }
+
+    /// A leaf for a leafable cluster.
+    fn leaf(&mut self, prims: &[Prim], items: &[Item]) -> u32 {
+        if items[0].sphere {
+            return (TAG_SPHERE << TAG_SHIFT) | items[0].prim;
+        }
+        let mut packet = Packet {
+            v: [[F8([f32::NAN; LANES]); 3]; 3],
+            prim: [0; LANES],
+        };
+        for (lane, it) in items.iter().enumerate() {
+            let p = &prims[it.prim as usize];
+            for (vertex, pos) in [p.a, p.b, p.c].into_iter().enumerate() {
+                for axis in 0..3 {
+                    packet.v[vertex][axis].0[lane] = pos[axis];
+                }
+            }
+            packet.prim[lane] = it.prim;
+        }
+        self.packets.push(packet);
+        (TAG_PACKET << TAG_SHIFT) | (self.packets.len() - 1) as u32
+    }
+
+    /// Closest hit with `t ∈ (0, t_max)`.
+    #[inline]
+    pub(super) fn intersect(&self, prims: &[Prim], ray: &RayShear, t_max: f32) -> Option<WideHit> {
+        let boxes = BoxRay::new(ray);
+        let mut best_t = t_max;
+        let mut best: Option<WideHit> = None;
+        let mut stack = [(0u32, 0f32); STACK];
+        stack[0] = (self.root, 0.0);
+        let mut sp = 1;
+        while sp > 0 {
+            sp -= 1;
+            let (r, t_near) = stack[sp];
+            if t_near > best_t {
+                continue;
+            }
+            let index = (r & INDEX_MASK) as usize;
+            match r >> TAG_SHIFT {
+                TAG_INNER => {
+                    let node = &self.nodes[index];
+                    let (mask, t_in) = boxes.test(node, best_t);
+                    // Push hit children farthest first so the nearest is popped first.
+                    let mut hits = [(0u32, 0f32); LANES];
+                    let mut n = 0;
+                    let mut m = mask;
+                    while m != 0 {
+                        let lane = m.trailing_zeros() as usize;
+                        m &= m - 1;
+                        // Insertion into `hits` sorted by descending entry distance.
+                        let entry = (node.child[lane], t_in[lane]);
+                        let mut j = n;
+                        while j > 0 && hits[j - 1].1 < entry.1 {
+                            hits[j] = hits[j - 1];
+                            j -= 1;
+                        }
+                        hits[j] = entry;
+                        n += 1;
+                    }
+                    // Cannot overflow: the build checked the tree's stack need (see STACK).
+                    stack[sp..sp + n].copy_from_slice(&hits[..n]);
+                    sp += n;
+                }
+                TAG_PACKET => {
+                    if let Some(h) = packet_closest(&self.packets[index], ray, best_t) {
+                        best_t = h.1;
+                        best = Some(h);
+                    }
+                }
+                _ => {
+                    let p = &prims[index];
+                    if let Some(t) = intersect_sphere(p.a, p.b.x, ray.o, ray.d, best_t) {
+                        best_t = t;
+                        best = Some((index as u32, t, 0.0, 0.0));
+                    }
+                }
+            }
+        }
+        best
+    }
+
+    /// Whether anything is hit with `t ∈ (0, t_max)`.
+    #[inline]
+    pub(super) fn occluded(&self, prims: &[Prim], ray: &RayShear, t_max: f32) -> bool {
+        let boxes = BoxRay::new(ray);
+        let mut stack = [0u32; STACK];
+        stack[0] = self.root;
+        let mut sp = 1;
+        while sp > 0 {
+            sp -= 1;
+            let r = stack[sp];
+            let index = (r & INDEX_MASK) as usize;
+            match r >> TAG_SHIFT {
+                TAG_INNER => {
+                    let node = &self.nodes[index];
+                    let (mask, _) = boxes.test(node, t_max);
+                    let mut m = mask;
+                    while m != 0 {
+                        let lane = m.trailing_zeros() as usize;
+                        m &= m - 1;
+                        stack[sp] = node.child[lane];
+                        sp += 1;
+                    }
+                }
+                TAG_PACKET => {
+                    if packet_any(&self.packets[index], ray, t_max) {
+                        return true;
+                    }
+                }
+                _ => {
+                    let p = &prims[index];
+                    if intersect_sphere(p.a, p.b.x, ray.o, ray.d, t_max).is_some() {
+                        return true;
+                    }
+                }
+            }
+        }
+        false
+    }
+}
+
+/// Splits `items` in two non-empty parts (reordering it) and returns the size of the first:
+/// binned SAH on centroids, or the object median along the widest centroid axis when the
+/// SAH finds no split or below [`MEDIAN_DEPTH`].
+fn split(items: &mut [Item], depth: u32) -> usize {
+    let n = items.len();
+    let (clo, chi) = items.iter().fold(
+        (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
+        |(lo, hi), it| (lo.min(it.centroid), hi.max(it.centroid)),
+    );
+    let extent = chi - clo;
+    if depth < MEDIAN_DEPTH {
+        let mut best: Option<(f32, usize, usize)> = None; // (cost, axis, first right bin)
+        for axis in 0..3 {
+            if extent[axis].is_nan() || extent[axis] <= 0.0 {
+                continue;
+            }
+            let scale = BINS as f32 / extent[axis];
+            let bin_of = |c: f32| (((c - clo[axis]) * scale) as usize).min(BINS - 1);
+            let mut count = [0usize; BINS];
+            let mut blo = [Vec3::splat(f32::INFINITY); BINS];
+            let mut bhi = [Vec3::splat(f32::NEG_INFINITY); BINS];
+            for it in items.iter() {
+                let b = bin_of(it.centroid[axis]);
+                count[b] += 1;
+                blo[b] = blo[b].min(it.lo);
+                bhi[b] = bhi[b].max(it.hi);
+            }
+            // Sweep: left areas/counts for planes after bin i.
+            let mut left = [(0.0f32, 0usize); BINS];
+            let (mut lo, mut hi, mut c) = (
+                Vec3::splat(f32::INFINITY),
+                Vec3::splat(f32::NEG_INFINITY),
+                0,
+            );
+            for i in 0..BINS - 1 {
+                lo = lo.min(blo[i]);
+                hi = hi.max(bhi[i]);
+                c += count[i];
+                left[i] = (area(lo, hi), c);
+            }
+            let (mut lo, mut hi, mut c) = (
+                Vec3::splat(f32::INFINITY),
+                Vec3::splat(f32::NEG_INFINITY),
+                0,
+            );
+            for i in (1..BINS).rev() {
+                lo = lo.min(blo[i]);
+                hi = hi.max(bhi[i]);
+                c += count[i];
+                let (al, cl) = left[i - 1];
+                if cl == 0 || c == 0 {
+                    continue;
+                }
+                let cost = al * cl as f32 + area(lo, hi) * c as f32;
+                if best.is_none_or(|(bc, _, _)| cost < bc) {
+                    best = Some((cost, axis, i));
+                }
+            }
+        }
+        if let Some((_, axis, bin_plane)) = best {
+            let scale = BINS as f32 / extent[axis];
+            let mut m = 0;
+            for i in 0..n {
+                let b = (((items[i].centroid[axis] - clo[axis]) * scale) as usize).min(BINS - 1);
+                if b < bin_plane {
+                    items.swap(i, m);
+                    m += 1;
+                }
+            }
+            if m > 0 && m < n {
+                return m;
+            }
+        }
+    }
+    // Object median along the widest centroid axis (also for coincident centroids).
+    let axis = if extent.x >= extent.y && extent.x >= extent.z {
+        0
+    } else if extent.y >= extent.z {
+        1
+    } else {
+        2
+    };
+    let m = n / 2;
+    items.select_nth_unstable_by(m, |a, b| a.centroid[axis].total_cmp(&b.centroid[axis]));
+    m
+}
+
+/// Per-ray constants of the 8-wide box test.
+struct BoxRay {
+    /// Origin per axis.
+    o: [f32; 3],
+    /// Reciprocal direction per axis (a huge finite value for zero components).
+    inv: [f32; 3],
+    /// Whether the direction component is negative (then entry is at the box maximum).
+    neg: [bool; 3],
+}
+
+impl BoxRay {
+    #[inline(always)]
+    fn new(ray: &RayShear) -> Self {
+        let inv = ray
+            .d
+            .to_array()
+            .map(|d| if d == 0.0 { f32::MAX } else { 1.0 / d });
+        Self {
+            o: ray.o.to_array(),
+            inv,
+            neg: ray.d.to_array().map(|d| d < 0.0),
+        }
+    }
+
+    /// Lane mask of the children whose box the ray enters before `t_max`, and the entry
+    /// distances (AVX2 when the build target has it, else [`Self::test_portable`]).
+    #[inline(always)]
+    fn test(&self, node: &Node, t_max: f32) -> (u32, [f32; LANES]) {
+        #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+        {
+            avx2::node_test(self, node, t_max)
+        }
+        #[cfg(not(all(target_arch = "x86_64", target_feature = "avx2")))]
+        {
+            self.test_portable(node, t_max)
+        }
+    }
+
+    /// [`Self::test`] as plain lane loops.
+    #[cfg_attr(all(target_arch = "x86_64", target_feature = "avx2"), allow(dead_code))]
+    #[inline(always)]
+    fn test_portable(&self, node: &Node, t_max: f32) -> (u32, [f32; LANES]) {
+        let mut t_in = [0.0f32; LANES];
+        let mut t_out = [t_max; LANES];
+        for axis in 0..3 {
+            let (near, far) = if self.neg[axis] {
+                (&node.max[axis].0, &node.min[axis].0)
+            } else {
+                (&node.min[axis].0, &node.max[axis].0)
+            };
+            let (o, inv) = (self.o[axis], self.inv[axis]);
+            for l in 0..LANES {
+                let a = (near[l] - o) * inv;
+                let b = (far[l] - o) * inv;
+                t_in[l] = if a > t_in[l] { a } else { t_in[l] };
+                t_out[l] = if b < t_out[l] { b } else { t_out[l] };
+            }
+        }
+        let mut mask = 0u32;
+        for l in 0..LANES {
+            mask |= u32::from(t_in[l] <= t_out[l] * TFAR_SCALE) << l;
+        }
+        (mask, t_in)
+    }
+}
+
+/// Result of a packet test: mask of lanes hit with `t ∈ (0, t_max)`, then `t`, `b1`, `b2` per
+/// lane (meaningful in the masked lanes only).
+type PacketHits = (u32, [f32; LANES], [f32; LANES], [f32; LANES]);
+
+/// The watertight test of [`super::intersect_prim`] on 8 lanes (AVX2 when the build target
+/// has it, else [`packet_test_portable`]).
+#[inline(always)]
+fn packet_test(p: &Packet, ray: &RayShear, t_max: f32) -> PacketHits {
+    #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+    {
+        avx2::packet_test(p, ray, t_max)
+    }
+    #[cfg(not(all(target_arch = "x86_64", target_feature = "avx2")))]
+    {
+        packet_test_portable(p, ray, t_max)
+    }
+}
+
+/// [`packet_test`] as plain lane loops.
+#[cfg_attr(all(target_arch = "x86_64", target_feature = "avx2"), allow(dead_code))]
+#[inline(always)]
+fn packet_test_portable(p: &Packet, ray: &RayShear, t_max: f32) -> PacketHits {
+    let [kx, ky, kz] = ray.k;
+    let (ox, oy, oz) = (ray.o[kx], ray.o[ky], ray.o[kz]);
+    let (sx, sy, sz) = (ray.s.x, ray.s.y, ray.s.z);
+    // Sheared vertex coordinates relative to the origin, per vertex.
+    let mut x = [[0.0f32; LANES]; 3];
+    let mut y = [[0.0f32; LANES]; 3];
+    let mut z = [[0.0f32; LANES]; 3];
+    for v in 0..3 {
+        let (px, py, pz) = (&p.v[v][kx].0, &p.v[v][ky].0, &p.v[v][kz].0);
+        for l in 0..LANES {
+            let (ax, ay, az) = (px[l] - ox, py[l] - oy, pz[l] - oz);
+            x[v][l] = ax - sx * az;
+            y[v][l] = ay - sy * az;
+            z[v][l] = sz * az;
+        }
+    }
+    let [ax, bx, cx] = x;
+    let [ay, by, cy] = y;
+    let mut u = [0.0f32; LANES];
+    let mut v = [0.0f32; LANES];
+    let mut w = [0.0f32; LANES];
+    let mut zero = 0u32;
+    for l in 0..LANES {
+        u[l] = cx[l] * by[l] - cy[l] * bx[l];
+        v[l] = ax[l] * cy[l] - ay[l] * cx[l];
+        w[l] = bx[l] * ay[l] - by[l] * ax[l];
+        zero |= u32::from(u[l] == 0.0 || v[l] == 0.0 || w[l] == 0.0) << l;
+    }
+    while zero != 0 {
+        let l = zero.trailing_zeros() as usize;
+        zero &= zero - 1;
+        u[l] = edge_f64(cx[l], by[l], cy[l], bx[l]);
+        v[l] = edge_f64(ax[l], cy[l], ay[l], cx[l]);
+        w[l] = edge_f64(bx[l], ay[l], by[l], ax[l]);
+    }
+    let mut t = [0.0f32; LANES];
+    let mut b1 = [0.0f32; LANES];
+    let mut b2 = [0.0f32; LANES];
+    let mut mask = 0u32;
+    for l in 0..LANES {
+        let inside = (u[l] >= 0.0 && v[l] >= 0.0 && w[l] >= 0.0)
+            || (u[l] <= 0.0 && v[l] <= 0.0 && w[l] <= 0.0);
+        let det = u[l] + v[l] + w[l];
+        let t_scaled = u[l] * z[0][l] + v[l] * z[1][l] + w[l] * z[2][l];
+        let inv_det = 1.0 / det;
+        t[l] = t_scaled * inv_det;
+        b1[l] = v[l] * inv_det;
+        b2[l] = w[l] * inv_det;
+        let ok = inside && det != 0.0 && t[l] > 0.0 && t[l] < t_max;
+        mask |= u32::from(ok) << l;
+    }
+    (mask, t, b1, b2)
+}
+
+/// Closest triangle of a packet with `t < t_max`.
+#[inline(always)]
+fn packet_closest(p: &Packet, ray: &RayShear, t_max: f32) -> Option<WideHit> {
+    let (mut mask, t, b1, b2) = packet_test(p, ray, t_max);
+    let mut best: Option<WideHit> = None;
+    let mut best_t = t_max;
+    while mask != 0 {
+        let l = mask.trailing_zeros() as usize;
+        mask &= mask - 1;
+        if t[l] < best_t {
+            best_t = t[l];
+            best = Some((p.prim[l], t[l], b1[l], b2[l]));
+        }
+    }
+    best
+}
+
+/// Whether any triangle of a packet is hit with `t < t_max`.
+#[inline(always)]
+fn packet_any(p: &Packet, ray: &RayShear, t_max: f32) -> bool {
+    packet_test(p, ray, t_max).0 != 0
+}
+
+/// Exactly-zero edge functions in f32: decide in f64 so neighbours agree (as the scalar test).
+#[inline]
+fn edge_f64(p: f32, q: f32, r: f32, s: f32) -> f32 {
+    (f64::from(p) * f64::from(q) - f64::from(r) * f64::from(s)) as f32
+}
+
+/// AVX2 versions of the lane loops: the same operations in the same order (no FMA
+/// contraction in the triangle test, so lanes equal the scalar test bit for bit).
+#[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+mod avx2 {
+    use std::arch::x86_64::*;
+
+    use super::{BoxRay, F8, LANES, Node, Packet, PacketHits, RayShear, TFAR_SCALE, edge_f64};
+
+    #[inline(always)]
+    fn load(v: &F8) -> __m256 {
+        // SAFETY: AVX2 is enabled for the whole build (cfg); `F8` is 8 floats aligned to 32
+        // bytes.
+        unsafe { _mm256_load_ps(v.0.as_ptr()) }
+    }
+
+    #[inline(always)]
+    fn store(v: __m256) -> [f32; LANES] {
+        let mut out = F8([0.0; LANES]);
+        // SAFETY: as in `load`.
+        unsafe { _mm256_store_ps(out.0.as_mut_ptr(), v) };
+        out.0
+    }
+
+    #[inline(always)]
+    pub(super) fn node_test(b: &BoxRay, node: &Node, t_max: f32) -> (u32, [f32; LANES]) {
+        // SAFETY: AVX2 is enabled for the whole build (cfg): the intrinsics are available.
+        unsafe {
+            let mut t_in = _mm256_setzero_ps();
+            let mut t_out = _mm256_set1_ps(t_max);
+            for axis in 0..3 {
+                let (near, far) = if b.neg[axis] {
+                    (&node.max[axis], &node.min[axis])
+                } else {
+                    (&node.min[axis], &node.max[axis])
+                };
+                let o = _mm256_set1_ps(b.o[axis]);
+                let inv = _mm256_set1_ps(b.inv[axis]);
+                let a = _mm256_mul_ps(_mm256_sub_ps(load(near), o), inv);
+                let f = _mm256_mul_ps(_mm256_sub_ps(load(far), o), inv);
+                // maxps(a, b) = a > b ? a : b, as the portable loop.
+                t_in = _mm256_max_ps(a, t_in);
+                t_out = _mm256_min_ps(f, t_out);
+            }
+            let t_out = _mm256_mul_ps(t_out, _mm256_set1_ps(TFAR_SCALE));
+            let mask = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(t_in, t_out)) as u32;
+            (mask, store(t_in))
+        }
+    }
+
+    #[inline(always)]
+    pub(super) fn packet_test(p: &Packet, ray: &RayShear, t_max: f32) -> PacketHits {
+        // SAFETY: AVX2 is enabled for the whole build (cfg): the intrinsics are available.
+        unsafe {
+            let [kx, ky, kz] = ray.k;
+            let (ox, oy, oz) = (
+                _mm256_set1_ps(ray.o[kx]),
+                _mm256_set1_ps(ray.o[ky]),
+                _mm256_set1_ps(ray.o[kz]),
+            );
+            let (sx, sy, sz) = (
+                _mm256_set1_ps(ray.s.x),
+                _mm256_set1_ps(ray.s.y),
+                _mm256_set1_ps(ray.s.z),
+            );
+            let zero = _mm256_setzero_ps();
+            let mut x = [zero; 3];
+            let mut y = [zero; 3];
+            let mut z = [zero; 3];
+            for v in 0..3 {
+                let ax = _mm256_sub_ps(load(&p.v[v][kx]), ox);
+                let ay = _mm256_sub_ps(load(&p.v[v][ky]), oy);
+                let az = _mm256_sub_ps(load(&p.v[v][kz]), oz);
+                x[v] = _mm256_sub_ps(ax, _mm256_mul_ps(sx, az));
+                y[v] = _mm256_sub_ps(ay, _mm256_mul_ps(sy, az));
+                z[v] = _mm256_mul_ps(sz, az);
+            }
+            let [ax, bx, cx] = x;
+            let [ay, by, cy] = y;
+            let mut u = _mm256_sub_ps(_mm256_mul_ps(cx, by), _mm256_mul_ps(cy, bx));
+            let mut v = _mm256_sub_ps(_mm256_mul_ps(ax, cy), _mm256_mul_ps(ay, cx));
+            let mut w = _mm256_sub_ps(_mm256_mul_ps(bx, ay), _mm256_mul_ps(by, ax));
+            let on_edge = _mm256_or_ps(
+                _mm256_or_ps(
+                    _mm256_cmp_ps::<_CMP_EQ_OQ>(u, zero),
+                    _mm256_cmp_ps::<_CMP_EQ_OQ>(v, zero),
+                ),
+                _mm256_cmp_ps::<_CMP_EQ_OQ>(w, zero),
+            );
+            let mut fix = _mm256_movemask_ps(on_edge) as u32;
+            if fix != 0 {
+                let (ax, ay, bx, by, cx, cy) = (
+                    store(ax),
+                    store(ay),
+                    store(bx),
+                    store(by),
+                    store(cx),
+                    store(cy),
+                );
+                let (mut us, mut vs, mut ws) = (store(u), store(v), store(w));
+                while fix != 0 {
+                    let l = fix.trailing_zeros() as usize;
+                    fix &= fix - 1;
+                    us[l] = edge_f64(cx[l], by[l], cy[l], bx[l]);
+                    vs[l] = edge_f64(ax[l], cy[l], ay[l], cx[l]);
+                    ws[l] = edge_f64(bx[l], ay[l], by[l], ax[l]);
+                }
+                u = load(&F8(us));
+                v = load(&F8(vs));
+                w = load(&F8(ws));
+            }
+            let all_ge = _mm256_and_ps(
+                _mm256_and_ps(
+                    _mm256_cmp_ps::<_CMP_GE_OQ>(u, zero),
+                    _mm256_cmp_ps::<_CMP_GE_OQ>(v, zero),
+                ),
+                _mm256_cmp_ps::<_CMP_GE_OQ>(w, zero),
+            );
+            let all_le = _mm256_and_ps(
+                _mm256_and_ps(
+                    _mm256_cmp_ps::<_CMP_LE_OQ>(u, zero),
+                    _mm256_cmp_ps::<_CMP_LE_OQ>(v, zero),
+                ),
+                _mm256_cmp_ps::<_CMP_LE_OQ>(w, zero),
+            );
+            let det = _mm256_add_ps(_mm256_add_ps(u, v), w);
+            let t_scaled = _mm256_add_ps(
+                _mm256_add_ps(_mm256_mul_ps(u, z[0]), _mm256_mul_ps(v, z[1])),
+                _mm256_mul_ps(w, z[2]),
+            );
+            let inv_det = _mm256_div_ps(_mm256_set1_ps(1.0), det);
+            let t = _mm256_mul_ps(t_scaled, inv_det);
+            let ok = _mm256_and_ps(
+                _mm256_and_ps(
+                    _mm256_or_ps(all_ge, all_le),
+                    _mm256_cmp_ps::<_CMP_NEQ_OQ>(det, zero),
+                ),
+                _mm256_and_ps(
+                    _mm256_cmp_ps::<_CMP_GT_OQ>(t, zero),
+                    _mm256_cmp_ps::<_CMP_LT_OQ>(t, _mm256_set1_ps(t_max)),
+                ),
+            );
+            let mask = _mm256_movemask_ps(ok) as u32;
+            if mask == 0 {
+                return (0, [0.0; LANES], [0.0; LANES], [0.0; LANES]);
+            }
+            (
+                mask,
+                store(t),
+                store(_mm256_mul_ps(v, inv_det)),
+                store(_mm256_mul_ps(w, inv_det)),
+            )
+        }
+    }
+}
