@@ -24,6 +24,10 @@
 //!   for relative-variance training [Hua §4.2.1].
 //! - [`denoise`]: edge-aware à-trous wavelet denoiser (albedo/normal/variance guided) for
 //!   the surrogate image of relative-variance training [Hua §4.2.1].
+//! - [`spec`]: options of the CV estimators and their phase split (shared by renderer,
+//!   wire format and coordinator).
+//! - [`surrogate`]: the denoised surrogate image of relative training [Hua eq. 25] from
+//!   per-pixel moments.
 //! - [`metrics`]: relMSE, MSE, efficiency and speedup (DESIGN §6).
 //! - [`perceptual`]: Fan's perceptual error with the tvi function [Fan eq. 12].
 
@@ -66,4 +70,6 @@ pub mod perceptual;
 pub mod perlight;
 pub mod reconstruct;
 pub mod solve;
+pub mod spec;
+pub mod surrogate;
 pub mod table;

@@ -182,6 +182,148 @@ pub fn solve_table(
         .collect()
 }
 
+/// A merged accumulator table of either record kind: what a training phase produces and
+/// the coordinator merges (in canonical task order) and solves.
+#[derive(Clone, Debug, PartialEq)]
+pub enum AccumulatorTable {
+    /// [`CellAccumulator`] records (`cms`, `optimal_mis`).
+    Moments(BTreeMap<u64, CellAccumulator>),
+    /// [`MeanContributionAccumulator`] records (`per_light_cv`).
+    Mean(BTreeMap<u64, MeanContributionAccumulator>),
+}
+
+/// A solved table: coefficients per cell and how many training samples were rejected.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct SolvedTable {
+    /// Coefficients by cell key.
+    pub coefficients: BTreeMap<u64, CellCoefficients>,
+    /// Training samples rejected as non-finite, over all cells.
+    pub rejected: u64,
+}
+
+impl SolvedTable {
+    /// The wire encoding ([`KIND_COEFFICIENTS`]).
+    pub fn encode(&self) -> Vec<u8> {
+        encode_table(&self.coefficients)
+    }
+}
+
+impl AccumulatorTable {
+    /// An empty table of `kind` ([`KIND_CELL_ACCUMULATORS`] or [`KIND_MEAN_CONTRIBUTIONS`]).
+    pub fn empty(kind: u16) -> Result<Self, CellError> {
+        match kind {
+            KIND_CELL_ACCUMULATORS => Ok(Self::Moments(BTreeMap::new())),
+            KIND_MEAN_CONTRIBUTIONS => Ok(Self::Mean(BTreeMap::new())),
+            _ => Err(CellError::BadHeader),
+        }
+    }
+
+    /// The kind tag.
+    pub fn kind(&self) -> u16 {
+        match self {
+            Self::Moments(_) => KIND_CELL_ACCUMULATORS,
+            Self::Mean(_) => KIND_MEAN_CONTRIBUTIONS,
+        }
+    }
+
+    /// Number of cells.
+    pub fn len(&self) -> usize {
+        match self {
+            Self::Moments(t) => t.len(),
+            Self::Mean(t) => t.len(),
+        }
+    }
+
+    /// Whether no cell has a record.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Largest cell key, if any.
+    pub fn max_key(&self) -> Option<u64> {
+        match self {
+            Self::Moments(t) => t.keys().next_back().copied(),
+            Self::Mean(t) => t.keys().next_back().copied(),
+        }
+    }
+
+    /// Decodes a table of either accumulator kind (validating everything).
+    pub fn decode(bytes: &[u8]) -> Result<Self, CellError> {
+        match table_kind(bytes)? {
+            KIND_CELL_ACCUMULATORS => Ok(Self::Moments(decode_table(bytes)?)),
+            KIND_MEAN_CONTRIBUTIONS => Ok(Self::Mean(decode_table(bytes)?)),
+            _ => Err(CellError::BadHeader),
+        }
+    }
+
+    /// The wire encoding.
+    pub fn encode(&self) -> Vec<u8> {
+        match self {
+            Self::Moments(t) => encode_table(t),
+            Self::Mean(t) => encode_table(t),
+        }
+    }
+
+    /// Merges `other` into `self` key by key ([`merge_tables`]); different kinds are a
+    /// [`CellError::LayoutMismatch`].
+    pub fn merge(&mut self, other: &Self) -> Result<(), CellError> {
+        match (self, other) {
+            (Self::Moments(a), Self::Moments(b)) => merge_tables(a, b),
+            (Self::Mean(a), Self::Mean(b)) => merge_tables(a, b),
+            _ => Err(CellError::LayoutMismatch),
+        }
+    }
+
+    /// Solves every cell ([`solve`] for moments [Hua eq. 32–33], the mean contributions for
+    /// `per_light_cv` [Hua §7.2]) on up to `threads` threads. Cells are independent, so the
+    /// result does not depend on `threads`.
+    pub fn solve(&self, policy: &SolvePolicy, threads: usize) -> SolvedTable {
+        fn par<T: Sync>(
+            cells: &BTreeMap<u64, T>,
+            threads: usize,
+            f: impl Fn(&T) -> (CellCoefficients, u64) + Sync,
+        ) -> SolvedTable {
+            let items: Vec<(&u64, &T)> = cells.iter().collect();
+            let chunk = items.len().div_ceil(threads.max(1)).max(1);
+            let parts: Vec<Vec<(u64, CellCoefficients, u64)>> = std::thread::scope(|s| {
+                let handles: Vec<_> = items
+                    .chunks(chunk)
+                    .map(|c| {
+                        let f = &f;
+                        s.spawn(move || {
+                            c.iter()
+                                .map(|(k, v)| {
+                                    let (co, r) = f(v);
+                                    (**k, co, r)
+                                })
+                                .collect::<Vec<_>>()
+                        })
+                    })
+                    .collect();
+                handles
+                    .into_iter()
+                    .map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))
+                    .collect()
+            });
+            let mut out = SolvedTable::default();
+            for (k, co, r) in parts.into_iter().flatten() {
+                out.rejected += r;
+                out.coefficients.insert(k, co);
+            }
+            out
+        }
+        match self {
+            Self::Moments(t) => par(t, threads, |a| (solve(a, policy), a.rejected())),
+            Self::Mean(t) => par(t, threads, |a| {
+                (
+                    crate::perlight::mean_contribution_coefficients(a),
+                    a.rejected(),
+                )
+            }),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -31,43 +31,4 @@
 //! { "kind": "cms", "relative": true, "color": "rgb", "training_spp": 16, "grid_resolution": [32, 32, 32] }
 //! ```
 
-use serde::{Deserialize, Serialize};
-
-use super::cv::CvColor;
-
-/// Options of the `cms` estimator (see the module table).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct CmsOptions {
-    /// Optimise relative variance [Hua eq. 25].
-    pub relative: bool,
-    /// Per-channel or shared coefficients [Hua §4.3].
-    pub color: CvColor,
-    /// Training samples per pixel.
-    pub training_spp: u32,
-    /// Surrogate samples per pixel (with `relative`).
-    pub surrogate_spp: u32,
-    /// Grid cells per axis; `None` = adaptive.
-    pub grid_resolution: Option<[u32; 3]>,
-    /// Clustering threshold for emitters.
-    pub max_light_components: u32,
-    /// Relative ridge of the cell solves.
-    pub ridge: f64,
-    /// Minimum training samples per cell.
-    pub min_samples: u64,
-}
-
-impl Default for CmsOptions {
-    fn default() -> Self {
-        Self {
-            relative: true,
-            color: CvColor::Rgb,
-            training_spp: 16,
-            surrogate_spp: 1,
-            grid_resolution: None,
-            max_light_components: 1024,
-            ridge: 1e-6,
-            min_samples: 16,
-        }
-    }
-}
+pub use estimators::spec::CmsOptions;

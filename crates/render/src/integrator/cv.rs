@@ -51,8 +51,11 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
 use estimators::cell::{CellAccumulator, ColorMode, ComponentLayout, CvSample, training_weight};
-use estimators::perlight::{MeanContributionAccumulator, mean_contribution_coefficients};
-use estimators::solve::{CellCoefficients, SolvePolicy, SolveStatus, solve};
+use estimators::perlight::MeanContributionAccumulator;
+use estimators::solve::{CellCoefficients, SolvePolicy, SolveStatus};
+pub use estimators::spec::{CvColor, MAX_GRID_CELLS, PhaseSamples, PhasedEstimator, TRAIN_TILE};
+use estimators::surrogate::{PixelMoments, surrogate_image};
+use estimators::table::AccumulatorTable;
 use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -63,10 +66,6 @@ use crate::light::Lights;
 use crate::sampler::Sampler;
 use crate::tile::{RenderOptions, RenderStats, TileRect};
 
-/// Fixed tile edge of the training phase (canonical accumulator merge order).
-pub const TRAIN_TILE: u32 = 32;
-/// Most grid cells a job may ask for.
-pub const MAX_GRID_CELLS: u64 = 1 << 20;
 /// Each grid cell is split by the dominant axis and sign of the shading normal, so that
 /// surfaces of different orientation (floor vs. plate vs. wall: incompatible integrals
 /// [Hua §4.2]) never share coefficients.
@@ -84,26 +83,6 @@ fn normal_bin(n: Vec3) -> u32 {
         (2, n.z)
     };
     2 * axis + u32::from(v < 0.0)
-}
-
-/// Colour handling of the CV coefficients [Hua §4.3].
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum CvColor {
-    /// One coefficient per RGB channel.
-    #[default]
-    Rgb,
-    /// One coefficient for the channel mean.
-    Mono,
-}
-
-impl CvColor {
-    fn mode(self) -> ColorMode {
-        match self {
-            CvColor::Rgb => ColorMode::Rgb,
-            CvColor::Mono => ColorMode::Mono,
-        }
-    }
 }
 
 /// Seconds spent per phase.
@@ -384,8 +363,10 @@ struct CvContext<'a> {
     color: ColorMode,
 }
 
-/// Solved coefficients indexed by cell (grid cell or pixel).
-struct CoefficientTable {
+/// Solved coefficients indexed by cell (grid cell or pixel); built by
+/// [`CvJob::coefficient_table`].
+#[derive(Debug)]
+pub struct CoefficientTable {
     slot: Vec<u32>,
     coeffs: Vec<CellCoefficients>,
 }
@@ -691,13 +672,34 @@ impl VertexObserver for Policy<'_, '_> {
     }
 }
 
-/// What one tile of a phase produced.
-struct TileOut {
-    film: Film,
-    rays: u64,
-    cells: TileCells,
-    cv_sum: Vec<[f64; 3]>,
-    cell_id: Vec<f32>,
+/// What a tile of any phase produced: its film and the rays traced.
+#[derive(Debug)]
+pub struct TileFilm {
+    /// Per-pixel sums of the tile's samples.
+    pub film: Film,
+    /// Rays traced.
+    pub rays: u64,
+}
+
+/// What a training tile produced: film, rays and the tile's cell accumulators.
+#[derive(Debug)]
+pub struct TrainTile {
+    /// Film and rays.
+    pub out: TileFilm,
+    /// Cell accumulators of the tile (keys: [`CvJob::table_len`] cell indices).
+    pub cells: AccumulatorTable,
+}
+
+/// What a render-phase tile produced: film, rays, and per pixel the summed CV term
+/// (controlled − plain) and the cell of the first vertex (−1 for none), row-major.
+#[derive(Debug)]
+pub struct RenderTile {
+    /// Film and rays.
+    pub out: TileFilm,
+    /// Σ over samples of (controlled − plain), per pixel.
+    pub cv_sum: Vec<[f64; 3]>,
+    /// Cell id of the first vertex per pixel (−1: none).
+    pub cell_id: Vec<f32>,
 }
 
 #[derive(Clone, Copy, PartialEq, Eq)]
@@ -705,6 +707,275 @@ enum PhaseKind {
     Plain,
     Train,
     Apply,
+}
+
+/// A CV job prepared for its phases (grid, components, layout, sample split): the public
+/// phase API used by the in-process driver [`render_estimator_image`] and by farm workers,
+/// so both produce the same bits.
+///
+/// Farm flow: surrogate tiles ([`Self::surrogate_tile`]) → the coordinator assembles them
+/// and computes [`estimators::surrogate::surrogate_image`] → training tiles
+/// ([`Self::train_tile`], tiles of [`TRAIN_TILE`], whole training range) → the coordinator
+/// merges their [`AccumulatorTable`]s in row-major tile order and solves
+/// ([`AccumulatorTable::solve`] with [`Self::solve_policy`]) → render tiles
+/// ([`Self::render_tile`]) with the table built by [`Self::coefficient_table`].
+pub struct CvJob<'a> {
+    ctx: CvContext<'a>,
+    estimator: PhasedEstimator,
+    phases: PhaseSamples,
+    table_len: usize,
+}
+
+impl std::fmt::Debug for CvJob<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("CvJob")
+            .field("estimator", &self.estimator)
+            .field("phases", &self.phases)
+            .field("grid", &self.ctx.grid)
+            .field("layout", &self.ctx.layout)
+            .finish()
+    }
+}
+
+impl<'a> CvJob<'a> {
+    /// Prepares the phases of `settings.estimator`; `Ok(None)` for estimators without phases
+    /// (`path`, `ocv`).
+    pub fn new(
+        scene: &'a RenderScene,
+        settings: &RenderSettings,
+    ) -> Result<Option<Self>, RenderError> {
+        settings.validate()?;
+        let Some(estimator) = settings.estimator.phased() else {
+            return Ok(None);
+        };
+        if let Err((field, reason)) = estimator.validate() {
+            return Err(RenderError::InvalidSetting { field, reason });
+        }
+        if scene.width == 0 || scene.height == 0 {
+            return Err(RenderError::EmptyFilm {
+                width: scene.width,
+                height: scene.height,
+            });
+        }
+        let (kind, color, grid_res, max_lights) = match estimator {
+            PhasedEstimator::Cms(o) => (
+                Kind::Cms,
+                o.color,
+                o.grid_resolution,
+                o.max_light_components,
+            ),
+            PhasedEstimator::PerLightCv(o) => (
+                Kind::PerLight,
+                CvColor::Rgb,
+                o.grid_resolution,
+                o.max_light_components,
+            ),
+            PhasedEstimator::OptimalMis(o) => (
+                Kind::OptimalMis,
+                o.color,
+                Some([1, 1, 1]),
+                o.max_light_components,
+            ),
+        };
+        let bounds = scene.accel.bounds();
+        let comps = Components::new(&scene.lights, max_lights, bounds);
+        let overlapping = u32::from(kind != Kind::PerLight);
+        let layout = ComponentLayout::new(comps.partitions(), overlapping).map_err(|_| {
+            RenderError::InvalidSetting {
+                field: "estimator",
+                reason: "invalid component layout",
+            }
+        })?;
+        let grid = Grid::new(bounds, grid_res, scene.width, scene.height)?;
+        let table_len = match kind {
+            Kind::OptimalMis => scene.width as usize * scene.height as usize,
+            _ => grid.cells() * NORMAL_BINS as usize,
+        };
+        Ok(Some(Self {
+            ctx: CvContext {
+                rs: scene,
+                st: *settings,
+                kind,
+                comps,
+                grid,
+                layout,
+                color: color.mode(),
+            },
+            estimator,
+            phases: estimator.phases(settings.spp),
+            table_len,
+        }))
+    }
+
+    /// Sample ranges of the phases.
+    pub fn phases(&self) -> &PhaseSamples {
+        &self.phases
+    }
+
+    /// The estimator and its options.
+    pub fn estimator(&self) -> PhasedEstimator {
+        self.estimator
+    }
+
+    /// Whether the training phase needs a surrogate image [Hua eq. 25].
+    pub fn needs_surrogate(&self) -> bool {
+        self.estimator.relative() && !self.phases.surrogate.is_empty()
+    }
+
+    /// Solve policy of the cell systems.
+    pub fn solve_policy(&self) -> SolvePolicy {
+        self.estimator.solve_policy()
+    }
+
+    /// Number of cell keys (`0..table_len`): grid cells × normal bins, or pixels.
+    pub fn table_len(&self) -> usize {
+        self.table_len
+    }
+
+    /// Component layout of the cell systems.
+    pub fn layout(&self) -> ComponentLayout {
+        self.ctx.layout
+    }
+
+    /// Grid resolution (`[0, 0, 0]` when cells are pixels).
+    pub fn grid_resolution(&self) -> [u32; 3] {
+        if self.ctx.kind == Kind::OptimalMis {
+            [0; 3]
+        } else {
+            self.ctx.grid.resolution()
+        }
+    }
+
+    /// Renders `samples` of `tile` without CV (surrogate phase).
+    pub fn surrogate_tile(&self, tile: TileRect, samples: Range<u32>) -> TileFilm {
+        let t = run_tile(&self.ctx, tile, samples, PhaseKind::Plain, None, None);
+        TileFilm {
+            film: t.film,
+            rays: t.rays,
+        }
+    }
+
+    /// Renders training `samples` of `tile`, accumulating the cell systems; `surrogate` is
+    /// the whole image's surrogate (`width × height`, required when
+    /// [`Self::needs_surrogate`]).
+    pub fn train_tile(
+        &self,
+        tile: TileRect,
+        samples: Range<u32>,
+        surrogate: Option<&[f64]>,
+    ) -> Result<TrainTile, RenderError> {
+        let n = self.ctx.rs.width as usize * self.ctx.rs.height as usize;
+        if surrogate.is_some_and(|s| s.len() != n) {
+            return Err(RenderError::InvalidSetting {
+                field: "surrogate",
+                reason: "surrogate image size does not match the film",
+            });
+        }
+        let t = run_tile(&self.ctx, tile, samples, PhaseKind::Train, None, surrogate);
+        let cells = match self.ctx.kind {
+            Kind::PerLight => {
+                let mut m = BTreeMap::new();
+                for (k, a) in t.cells.cells {
+                    if let CellAcc::Mean(a) = a {
+                        m.insert(u64::from(k), a);
+                    }
+                }
+                AccumulatorTable::Mean(m)
+            }
+            _ => {
+                let mut m = BTreeMap::new();
+                for (k, a) in t.cells.cells {
+                    if let CellAcc::Moments(a) = a {
+                        m.insert(u64::from(k), a);
+                    }
+                }
+                AccumulatorTable::Moments(m)
+            }
+        };
+        Ok(TrainTile {
+            out: TileFilm {
+                film: t.film,
+                rays: t.rays,
+            },
+            cells,
+        })
+    }
+
+    /// Builds the lookup table of solved coefficients, checking every key and layout (a
+    /// table from the wire is untrusted).
+    pub fn coefficient_table(
+        &self,
+        solved: &BTreeMap<u64, CellCoefficients>,
+    ) -> Result<CoefficientTable, RenderError> {
+        let bad = |reason| RenderError::InvalidSetting {
+            field: "coefficients",
+            reason,
+        };
+        let mut table = CoefficientTable {
+            slot: vec![u32::MAX; self.table_len],
+            coeffs: Vec::with_capacity(solved.len()),
+        };
+        for (&key, co) in solved {
+            if co.layout() != self.ctx.layout || co.color() != self.ctx.color {
+                return Err(bad("coefficient layout does not match the job"));
+            }
+            let slot = usize::try_from(key)
+                .ok()
+                .and_then(|k| table.slot.get_mut(k))
+                .ok_or(bad("cell key out of range"))?;
+            *slot = table.coeffs.len() as u32;
+            table.coeffs.push(co.clone());
+        }
+        Ok(table)
+    }
+
+    /// Renders `samples` of `tile` with the CV applied.
+    pub fn render_tile(
+        &self,
+        tile: TileRect,
+        samples: Range<u32>,
+        table: &CoefficientTable,
+    ) -> RenderTile {
+        let t = run_tile(
+            &self.ctx,
+            tile,
+            samples,
+            PhaseKind::Apply,
+            Some(table),
+            None,
+        );
+        RenderTile {
+            out: TileFilm {
+                film: t.film,
+                rays: t.rays,
+            },
+            cv_sum: t.cv_sum,
+            cell_id: t.cell_id,
+        }
+    }
+}
+
+/// The per-pixel moments of a film, as [`estimators::surrogate::surrogate_image`] takes them.
+pub fn film_moments(film: &Film) -> Vec<PixelMoments> {
+    film.pixels
+        .iter()
+        .map(|p| PixelMoments {
+            sum: p.sum,
+            sum_sq: p.sum_sq,
+            albedo: p.albedo_sum,
+            normal: p.normal_sum,
+            count: p.count,
+        })
+        .collect()
+}
+
+/// What one tile of a phase produced (internal).
+struct TileOut {
+    film: Film,
+    rays: u64,
+    cells: TileCells,
+    cv_sum: Vec<[f64; 3]>,
+    cell_id: Vec<f32>,
 }
 
 fn run_tile(
@@ -782,23 +1053,20 @@ fn run_tile(
     }
 }
 
-/// Renders the tiles of one phase on `pool`, in parallel, returning outputs in tile order.
-#[allow(clippy::too_many_arguments)]
-fn run_phase(
+/// Runs `f` over `tiles` on `pool` in parallel, returning outputs in tile order and ticking
+/// `progress` with the samples of each finished tile.
+fn par_tiles<T: Send>(
     pool: &rayon::ThreadPool,
-    ctx: &CvContext<'_>,
     tiles: &[TileRect],
-    samples: Range<u32>,
-    kind: PhaseKind,
-    table: Option<&CoefficientTable>,
-    surrogate: Option<&[f64]>,
+    samples: &Range<u32>,
     progress: &(dyn Fn(u64) + Sync),
-) -> Vec<TileOut> {
+    f: impl Fn(TileRect) -> T + Sync,
+) -> Vec<T> {
     pool.install(|| {
         tiles
             .par_iter()
             .map(|&t| {
-                let out = run_tile(ctx, t, samples.clone(), kind, table, surrogate);
+                let out = f(t);
                 progress(t.pixel_count() * u64::from(samples.end - samples.start));
                 out
             })
@@ -810,114 +1078,43 @@ fn run_phase(
 /// samples of all phases), its stats and the estimator report. Estimators without phases
 /// (`path`, `ocv`) are rendered with [`crate::tile::render_image`] and an empty report.
 /// `progress(done, total)` counts samples over all phases.
+///
+/// The phases go through [`CvJob`] exactly as on the farm: surrogate and render tiles of
+/// `opts.tile_size` over their whole sample range, training tiles of [`TRAIN_TILE`],
+/// accumulators merged in row-major training-tile order, [`AccumulatorTable::solve`].
 pub fn render_estimator_image(
     scene: &RenderScene,
     settings: &RenderSettings,
     opts: &RenderOptions,
     progress: &(dyn Fn(u64, u64) + Sync),
 ) -> Result<(Film, RenderStats, EstimatorReport), RenderError> {
-    settings.validate()?;
     let start = Instant::now();
     let rs = scene;
-    let (kind, color, relative, training_spp, surrogate_spp, grid_res, max_lights, policy) =
-        match settings.estimator {
-            Estimator::Cms(o) => (
-                Kind::Cms,
-                o.color,
-                o.relative,
-                o.training_spp,
-                if o.relative {
-                    o.surrogate_spp.max(1)
-                } else {
-                    0
-                },
-                o.grid_resolution,
-                o.max_light_components,
-                SolvePolicy {
-                    ridge: o.ridge,
-                    min_samples: o.min_samples,
-                    ..SolvePolicy::default()
-                },
-            ),
-            Estimator::PerLightCv(o) => (
-                Kind::PerLight,
-                CvColor::Rgb,
-                false,
-                o.training_spp,
-                0,
-                o.grid_resolution,
-                o.max_light_components,
-                SolvePolicy::default(),
-            ),
-            Estimator::OptimalMis(o) => (
-                Kind::OptimalMis,
-                o.color,
-                false,
-                o.training_spp,
-                0,
-                Some([1, 1, 1]),
-                o.max_light_components,
-                SolvePolicy {
-                    ridge: o.ridge,
-                    min_samples: o.min_samples,
-                    ..SolvePolicy::default()
-                },
-            ),
-            _ => {
-                let (film, stats) = crate::tile::render_image(rs, settings, opts, progress)?;
-                let report = EstimatorReport {
-                    estimator: estimator_name(&settings.estimator).to_string(),
-                    render_spp: settings.spp,
-                    lights: rs.lights.len() as u32,
-                    effects: rs
-                        .techniques(settings)
-                        .into_iter()
-                        .map(String::from)
-                        .collect(),
-                    phases: PhaseTimings {
-                        render: stats.seconds,
-                        ..PhaseTimings::default()
-                    },
-                    ..EstimatorReport::default()
-                };
-                return Ok((film, stats, report));
-            }
+    let Some(job) = CvJob::new(rs, settings)? else {
+        let (film, stats) = crate::tile::render_image(rs, settings, opts, progress)?;
+        let report = EstimatorReport {
+            estimator: estimator_name(&settings.estimator).to_string(),
+            render_spp: settings.spp,
+            lights: rs.lights.len() as u32,
+            effects: rs
+                .techniques(settings)
+                .into_iter()
+                .map(String::from)
+                .collect(),
+            phases: PhaseTimings {
+                render: stats.seconds,
+                ..PhaseTimings::default()
+            },
+            ..EstimatorReport::default()
         };
-    if rs.width == 0 || rs.height == 0 {
-        return Err(RenderError::EmptyFilm {
-            width: rs.width,
-            height: rs.height,
-        });
-    }
-    let spp = settings.spp;
-    let s_spp = surrogate_spp.min(spp);
-    let t_spp = training_spp.min(spp - s_spp);
-    let r_spp = spp - s_spp - t_spp;
-
-    let bounds = rs.accel.bounds();
-    let comps = Components::new(&rs.lights, max_lights, bounds);
-    let overlapping = u32::from(kind != Kind::PerLight);
-    let layout = ComponentLayout::new(comps.partitions(), overlapping).map_err(|_| {
-        RenderError::InvalidSetting {
-            field: "estimator",
-            reason: "invalid component layout",
-        }
-    })?;
-    let grid = Grid::new(bounds, grid_res, rs.width, rs.height)?;
-    let ctx = CvContext {
-        rs,
-        st: *settings,
-        kind,
-        comps,
-        grid,
-        layout,
-        color: color.mode(),
+        return Ok((film, stats, report));
     };
+    let ph = job.phases().clone();
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(opts.threads)
         .build()
         .map_err(|e| RenderError::ThreadPool(e.to_string()))?;
-    let total = u64::from(rs.width) * u64::from(rs.height) * u64::from(spp);
+    let total = u64::from(rs.width) * u64::from(rs.height) * u64::from(settings.spp);
     let done = AtomicU64::new(0);
     let tick = |n: u64| {
         let d = done.fetch_add(n, Ordering::Relaxed) + n;
@@ -932,17 +1129,10 @@ pub fn render_estimator_image(
     // ---- surrogate [Hua §4.2.1, §6.1] ----
     let t0 = Instant::now();
     let mut surrogate: Option<Vec<f64>> = None;
-    if relative && s_spp > 0 {
-        let outs = run_phase(
-            &pool,
-            &ctx,
-            &tiles,
-            0..s_spp,
-            PhaseKind::Plain,
-            None,
-            None,
-            &tick,
-        );
+    if job.needs_surrogate() {
+        let outs = par_tiles(&pool, &tiles, &ph.surrogate, &tick, |t| {
+            job.surrogate_tile(t, ph.surrogate.clone())
+        });
         let mut sfilm = Film::new(rs.width, rs.height);
         for o in &outs {
             sfilm.merge(&o.film);
@@ -950,7 +1140,11 @@ pub fn render_estimator_image(
         }
         film.merge(&sfilm);
         let td = Instant::now();
-        surrogate = Some(surrogate_image(&sfilm));
+        surrogate = Some(surrogate_image(
+            &film_moments(&sfilm),
+            rs.width as usize,
+            rs.height as usize,
+        ));
         overhead += td.elapsed().as_secs_f64();
     }
     timings.surrogate = t0.elapsed().as_secs_f64();
@@ -958,86 +1152,52 @@ pub fn render_estimator_image(
     // ---- train ----
     let t0 = Instant::now();
     let train_tiles = TileRect::grid(rs.width, rs.height, TRAIN_TILE);
-    let outs = run_phase(
-        &pool,
-        &ctx,
-        &train_tiles,
-        s_spp..s_spp + t_spp,
-        PhaseKind::Train,
-        None,
-        surrogate.as_deref(),
-        &tick,
-    );
+    let outs = par_tiles(&pool, &train_tiles, &ph.train, &tick, |t| {
+        job.train_tile(t, ph.train.clone(), surrogate.as_deref())
+    });
     timings.train = t0.elapsed().as_secs_f64();
 
     // ---- merge in canonical tile order, solve ----
     let t0 = Instant::now();
-    let mut merged: BTreeMap<u32, CellAcc> = BTreeMap::new();
+    let mut merged: Option<AccumulatorTable> = None;
     for o in outs {
-        film.merge(&o.film);
-        rays += o.rays;
-        for (key, acc) in o.cells.cells {
-            match merged.entry(key) {
-                std::collections::btree_map::Entry::Vacant(v) => {
-                    v.insert(acc);
-                }
-                std::collections::btree_map::Entry::Occupied(mut e) => match (e.get_mut(), &acc) {
-                    (CellAcc::Moments(a), CellAcc::Moments(b)) => {
-                        let _ = a.merge(b);
-                    }
-                    (CellAcc::Mean(a), CellAcc::Mean(b)) => {
-                        let _ = a.merge(b);
-                    }
-                    _ => {}
-                },
-            }
+        let o = o?;
+        film.merge(&o.out.film);
+        rays += o.out.rays;
+        match &mut merged {
+            None => merged = Some(o.cells),
+            Some(m) => m.merge(&o.cells).map_err(|_| RenderError::InvalidSetting {
+                field: "estimator",
+                reason: "training accumulators of different layouts",
+            })?,
         }
     }
-    let cells: Vec<(u32, CellAcc)> = merged.into_iter().collect();
-    let solved: Vec<(u32, CellCoefficients, u64)> = pool.install(|| {
-        cells
-            .par_iter()
-            .map(|(key, acc)| match acc {
-                CellAcc::Moments(a) => (*key, solve(a, &policy), a.rejected()),
-                CellAcc::Mean(a) => (*key, mean_contribution_coefficients(a), a.rejected()),
-            })
-            .collect()
+    let merged = merged.unwrap_or(match job.estimator() {
+        PhasedEstimator::PerLightCv(_) => AccumulatorTable::Mean(BTreeMap::new()),
+        _ => AccumulatorTable::Moments(BTreeMap::new()),
     });
-    let table_len = match kind {
-        Kind::OptimalMis => rs.width as usize * rs.height as usize,
-        _ => grid.cells() * NORMAL_BINS as usize,
-    };
-    let mut table = CoefficientTable {
-        slot: vec![u32::MAX; table_len],
-        coeffs: Vec::with_capacity(solved.len()),
-    };
+    let solved = merged.solve(&job.solve_policy(), opts.threads.max(1));
+    let table = job.coefficient_table(&solved.coefficients)?;
+    let layout = job.layout();
     let mut report = EstimatorReport {
         estimator: estimator_name(&settings.estimator).to_string(),
-        surrogate_spp: s_spp,
-        training_spp: t_spp,
-        render_spp: r_spp,
-        grid_resolution: if kind == Kind::OptimalMis {
-            [0; 3]
-        } else {
-            grid.resolution()
-        },
-        cells: solved.len() as u64,
+        surrogate_spp: ph.surrogate.len() as u32,
+        training_spp: ph.train.len() as u32,
+        render_spp: ph.render.len() as u32,
+        grid_resolution: job.grid_resolution(),
+        cells: solved.coefficients.len() as u64,
         lights: rs.lights.len() as u32,
         light_components: layout.partitions,
         overlapping_components: layout.overlapping,
+        rejected_training_samples: solved.rejected,
         ..EstimatorReport::default()
     };
-    for (key, co, rejected) in solved {
-        report.rejected_training_samples += rejected;
+    for co in solved.coefficients.values() {
         match co.diagnostics().status {
             SolveStatus::Solved => report.cells_solved += 1,
             SolveStatus::Fallback(r) => {
                 *report.cells_fallback.entry(format!("{r:?}")).or_insert(0) += 1;
             }
-        }
-        if let Some(s) = table.slot.get_mut(key as usize) {
-            *s = table.coeffs.len() as u32;
-            table.coeffs.push(co);
         }
     }
     timings.solve = t0.elapsed().as_secs_f64();
@@ -1048,20 +1208,13 @@ pub fn render_estimator_image(
     let n = rs.width as usize * rs.height as usize;
     let mut cv_sum = vec![[0.0f64; 3]; n];
     let mut cell_id = vec![-1.0f32; n];
-    if r_spp > 0 {
-        let outs = run_phase(
-            &pool,
-            &ctx,
-            &tiles,
-            s_spp + t_spp..spp,
-            PhaseKind::Apply,
-            Some(&table),
-            None,
-            &tick,
-        );
+    if !ph.render.is_empty() {
+        let outs = par_tiles(&pool, &tiles, &ph.render, &tick, |t| {
+            job.render_tile(t, ph.render.clone(), &table)
+        });
         for (o, t) in outs.iter().zip(&tiles) {
-            film.merge(&o.film);
-            rays += o.rays;
+            film.merge(&o.out.film);
+            rays += o.out.rays;
             let mut i = 0;
             for y in t.y0..t.y0 + t.height {
                 for x in t.x0..t.x0 + t.width {
@@ -1092,27 +1245,35 @@ pub fn render_estimator_image(
     ];
     report.phases = timings;
     report.cv_overhead_seconds = overhead;
-    let mut effects: Vec<String> = rs
-        .techniques(settings)
-        .into_iter()
-        .map(String::from)
-        .collect();
-    if layout.partitions > 0 {
-        effects.push(format!("cv_lights:{}", layout.partitions));
-    }
-    if rs.lights.env_light().is_some() {
-        effects.push("cv_env".into());
-    }
-    if layout.overlapping > 0 {
-        effects.push("cv_bsdf".into());
-    }
-    report.effects = effects;
+    report.effects = job.effects();
     let stats = RenderStats {
         samples: film.sample_count(),
         rays,
         seconds: start.elapsed().as_secs_f64(),
     };
     Ok((film, stats, report))
+}
+
+impl CvJob<'_> {
+    /// Techniques simulated and CV components built (for stats).
+    pub fn effects(&self) -> Vec<String> {
+        let rs = self.ctx.rs;
+        let mut effects: Vec<String> = rs
+            .techniques(&self.ctx.st)
+            .into_iter()
+            .map(String::from)
+            .collect();
+        if self.ctx.layout.partitions > 0 {
+            effects.push(format!("cv_lights:{}", self.ctx.layout.partitions));
+        }
+        if rs.lights.env_light().is_some() {
+            effects.push("cv_env".into());
+        }
+        if self.ctx.layout.overlapping > 0 {
+            effects.push("cv_bsdf".into());
+        }
+        effects
+    }
 }
 
 fn estimator_name(e: &Estimator) -> &'static str {
@@ -1124,61 +1285,6 @@ fn estimator_name(e: &Estimator) -> &'static str {
         #[allow(unreachable_patterns)]
         _ => "other",
     }
-}
-
-/// Denoised per-pixel surrogate (channel mean) of a low-spp film [Hua §4.2.1].
-fn surrogate_image(film: &Film) -> Vec<f64> {
-    let (w, h) = (film.width as usize, film.height as usize);
-    let flat = |img: Vec<[f32; 3]>| -> Vec<f32> { img.into_iter().flatten().collect() };
-    let color = flat(film.mean_image());
-    // Variance of the pixel means; with fewer than 2 samples per pixel a per-pixel estimate
-    // does not exist, so the 3×3 spatial variance of the channel mean stands in (SVGF's
-    // spatial fallback), else the colour edge-stopping would keep the noise.
-    let lum: Vec<f32> = color
-        .chunks_exact(3)
-        .map(|c| (c[0] + c[1] + c[2]) / 3.0)
-        .collect();
-    let var: Vec<f32> = film
-        .variance_image()
-        .into_iter()
-        .enumerate()
-        .map(|(i, v)| {
-            let per_pixel = ((v[0] + v[1] + v[2]) / 3.0).max(0.0);
-            if film.pixels[i].count >= 2 {
-                return per_pixel;
-            }
-            let (x, y) = ((i % w) as isize, (i / w) as isize);
-            let (mut s, mut s2, mut k) = (0.0f32, 0.0f32, 0.0f32);
-            for dy in -1..=1 {
-                for dx in -1..=1 {
-                    let (xx, yy) = (x + dx, y + dy);
-                    if xx >= 0 && yy >= 0 && (xx as usize) < w && (yy as usize) < h {
-                        let l = lum[yy as usize * w + xx as usize];
-                        s += l;
-                        s2 += l * l;
-                        k += 1.0;
-                    }
-                }
-            }
-            let m = s / k;
-            (s2 / k - m * m).max(0.0)
-        })
-        .collect();
-    let albedo = flat(film.albedo_image());
-    let normal = flat(film.normal_image());
-    let den = estimators::denoise::atrous(
-        &color,
-        &var,
-        Some(&albedo),
-        Some(&normal),
-        w,
-        h,
-        &estimators::denoise::AtrousOptions::default(),
-    )
-    .unwrap_or(color);
-    den.chunks_exact(3)
-        .map(|c| f64::from(c[0] + c[1] + c[2]) / 3.0)
-        .collect()
 }
 
 #[cfg(test)]

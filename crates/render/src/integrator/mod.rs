@@ -75,10 +75,18 @@ impl Estimator {
     /// Whether the estimator runs phases (surrogate/train/solve/render) and must be rendered
     /// with [`cv::render_estimator_image`] (a bare tile renders its plain, `α ≡ 0` form).
     pub fn has_phases(&self) -> bool {
-        matches!(
-            self,
-            Estimator::Cms(_) | Estimator::PerLightCv(_) | Estimator::OptimalMis(_)
-        )
+        self.phased().is_some()
+    }
+
+    /// The phase-structured form of the estimator (`cms`, `per_light_cv`, `optimal_mis`).
+    pub fn phased(&self) -> Option<estimators::spec::PhasedEstimator> {
+        use estimators::spec::PhasedEstimator as P;
+        match *self {
+            Estimator::Cms(o) => Some(P::Cms(o)),
+            Estimator::PerLightCv(o) => Some(P::PerLightCv(o)),
+            Estimator::OptimalMis(o) => Some(P::OptimalMis(o)),
+            Estimator::Path | Estimator::Ocv(_) => None,
+        }
     }
 }
 

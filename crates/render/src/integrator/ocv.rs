@@ -45,7 +45,6 @@
 //! `n_j` samples of one estimate are consecutive (stratified) points.
 
 use glam::{Vec2, Vec3};
-use serde::{Deserialize, Serialize};
 
 use super::path::{PathSample, camera_hit, vertex_dimension};
 use super::{RenderScene, RenderSettings};
@@ -54,62 +53,7 @@ use crate::bsdf::Bsdf;
 use crate::math::{Frame, Ray};
 use crate::sampler::Sampler;
 
-/// Options of the `ocv` estimator (see the module docs for the table).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct OcvOptions {
-    /// Samples per estimate.
-    pub spe: u32,
-    /// Ridge penalty λ [Fan eq. 11].
-    pub lambda: f64,
-    /// Mixture weight of the BSDF component.
-    pub bsdf_share: f64,
-    /// Also penalise the intercept (literal eq. 11).
-    pub penalize_intercept: bool,
-    /// Fit the CV (false: plain deterministic-mixture estimate, eq. 6).
-    pub optimize: bool,
-    /// Above this many lights, one combined light component.
-    pub max_light_components: u32,
-}
-
-impl Default for OcvOptions {
-    fn default() -> Self {
-        Self {
-            spe: 16,
-            lambda: 1.0,
-            bsdf_share: 0.5,
-            penalize_intercept: false,
-            optimize: true,
-            max_light_components: 16,
-        }
-    }
-}
-
-impl OcvOptions {
-    /// The option names (for error messages listing the valid ones).
-    pub const FIELDS: &'static [&'static str] = &[
-        "spe",
-        "lambda",
-        "bsdf_share",
-        "penalize_intercept",
-        "optimize",
-        "max_light_components",
-    ];
-
-    /// Checks the ranges; returns the offending field and why.
-    pub fn validate(&self) -> Result<(), (&'static str, &'static str)> {
-        if self.spe == 0 {
-            return Err(("spe", "must be ≥ 1"));
-        }
-        if !(self.lambda >= 0.0 && self.lambda.is_finite()) {
-            return Err(("lambda", "must be finite and ≥ 0"));
-        }
-        if !(0.0..=1.0).contains(&self.bsdf_share) {
-            return Err(("bsdf_share", "must lie in [0, 1]"));
-        }
-        Ok(())
-    }
-}
+pub use estimators::spec::OcvOptions;
 
 /// What the gather draws its samples from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

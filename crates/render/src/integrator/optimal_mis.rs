@@ -18,34 +18,4 @@
 //! { "kind": "optimal_mis", "training_spp": 16 }
 //! ```
 
-use serde::{Deserialize, Serialize};
-
-use super::cv::CvColor;
-
-/// Options of the `optimal_mis` estimator (see the module table).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct OptimalMisOptions {
-    /// Training samples per pixel.
-    pub training_spp: u32,
-    /// Per-channel or shared coefficients.
-    pub color: CvColor,
-    /// Clustering threshold for emitters.
-    pub max_light_components: u32,
-    /// Relative ridge of the pixel solves.
-    pub ridge: f64,
-    /// Minimum training samples per pixel.
-    pub min_samples: u64,
-}
-
-impl Default for OptimalMisOptions {
-    fn default() -> Self {
-        Self {
-            training_spp: 16,
-            color: CvColor::Rgb,
-            max_light_components: 1024,
-            ridge: 1e-6,
-            min_samples: 16,
-        }
-    }
-}
+pub use estimators::spec::OptimalMisOptions;

@@ -18,26 +18,4 @@
 //! { "kind": "per_light_cv", "training_spp": 16 }
 //! ```
 
-use serde::{Deserialize, Serialize};
-
-/// Options of the `per_light_cv` estimator (see the module table).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct PerLightCvOptions {
-    /// Training samples per pixel.
-    pub training_spp: u32,
-    /// Grid cells per axis; `None` = adaptive.
-    pub grid_resolution: Option<[u32; 3]>,
-    /// Clustering threshold for emitters.
-    pub max_light_components: u32,
-}
-
-impl Default for PerLightCvOptions {
-    fn default() -> Self {
-        Self {
-            training_spp: 16,
-            grid_resolution: None,
-            max_light_components: 1024,
-        }
-    }
-}
+pub use estimators::spec::PerLightCvOptions;

@@ -1,0 +1,379 @@
+//! Options of the CV estimators and their phase plan: the one definition shared by the
+//! renderer (`render::integrator::Estimator`), the wire format (`protocol::EstimatorSpec`)
+//! and the coordinator's task plan.
+//!
+//! Every options struct is `serde(default, deny_unknown_fields)`: a misspelt option is an
+//! error naming it, an absent one takes the default of the tables below. `validate`
+//! returns the offending field and why.
+//!
+//! # Phases (DESIGN §1, [Hua §6.1])
+//! A CV job splits the sample indices `0..spp` of every pixel into consecutive ranges
+//! ([`PhaseSamples`]): surrogate `[0, s)` (1–2 spp for the relative-variance surrogate,
+//! `cms` with `relative` only), train `[s, s+T)` (cell accumulators) and render
+//! `[s+T, spp)` (with the solved coefficients). All samples of all phases stay in the image.
+//! Training tiles have the fixed edge [`TRAIN_TILE`] and are never split in samples, so the
+//! canonical merge order of their accumulators (row-major tiles) does not depend on the
+//! job's tile size or on how many workers render them.
+
+use std::ops::Range;
+
+use serde::{Deserialize, Serialize};
+
+use crate::cell::ColorMode;
+
+/// Fixed tile edge of the training phase (canonical accumulator merge order).
+pub const TRAIN_TILE: u32 = 32;
+
+/// Colour handling of the CV coefficients [Hua §4.3].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CvColor {
+    /// One coefficient per RGB channel.
+    #[default]
+    Rgb,
+    /// One coefficient for the channel mean.
+    Mono,
+}
+
+impl CvColor {
+    /// The accumulator colour mode.
+    pub fn mode(self) -> ColorMode {
+        match self {
+            CvColor::Rgb => ColorMode::Rgb,
+            CvColor::Mono => ColorMode::Mono,
+        }
+    }
+}
+
+/// Sample-index ranges of the phases of one job (see the module docs).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct PhaseSamples {
+    /// Surrogate samples `[0, s)` (empty without a surrogate).
+    pub surrogate: Range<u32>,
+    /// Training samples `[s, s+T)`.
+    pub train: Range<u32>,
+    /// Render samples `[s+T, spp)`.
+    pub render: Range<u32>,
+}
+
+impl PhaseSamples {
+    /// Splits `0..spp`: the surrogate gets `min(surrogate_spp, spp)`, training
+    /// `min(training_spp, rest)`, render the remainder.
+    pub fn split(spp: u32, surrogate_spp: u32, training_spp: u32) -> Self {
+        let s = surrogate_spp.min(spp);
+        let t = training_spp.min(spp - s);
+        Self {
+            surrogate: 0..s,
+            train: s..s + t,
+            render: s + t..spp,
+        }
+    }
+}
+
+/// Options of the `ocv` estimator [Fan 2006].
+///
+/// | parameter | type | default | meaning |
+/// |---|---|---|---|
+/// | `spe` | u32 | 16 | samples per estimate (per vertex gather), ≥ 1 |
+/// | `lambda` | f64 | 1.0 | ridge penalty λ [Fan eq. 11] |
+/// | `bsdf_share` | f64 | 0.5 | mixture weight of the BSDF component (the rest is split equally among the light components), in [0, 1] |
+/// | `penalize_intercept` | bool | false | literal [Fan eq. 11]: also penalise β0 |
+/// | `optimize` | bool | true | false: plain deterministic-mixture estimate [Fan eq. 6] |
+/// | `max_light_components` | u32 | 16 | above this many lights, all lights form one component |
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct OcvOptions {
+    /// Samples per estimate.
+    pub spe: u32,
+    /// Ridge penalty λ [Fan eq. 11].
+    pub lambda: f64,
+    /// Mixture weight of the BSDF component.
+    pub bsdf_share: f64,
+    /// Also penalise the intercept (literal eq. 11).
+    pub penalize_intercept: bool,
+    /// Fit the CV (false: plain deterministic-mixture estimate, eq. 6).
+    pub optimize: bool,
+    /// Above this many lights, one combined light component.
+    pub max_light_components: u32,
+}
+
+impl Default for OcvOptions {
+    fn default() -> Self {
+        Self {
+            spe: 16,
+            lambda: 1.0,
+            bsdf_share: 0.5,
+            penalize_intercept: false,
+            optimize: true,
+            max_light_components: 16,
+        }
+    }
+}
+
+impl OcvOptions {
+    /// The option names (for error messages listing the valid ones).
+    pub const FIELDS: &'static [&'static str] = &[
+        "spe",
+        "lambda",
+        "bsdf_share",
+        "penalize_intercept",
+        "optimize",
+        "max_light_components",
+    ];
+
+    /// Checks the ranges; returns the offending field and why.
+    pub fn validate(&self) -> Result<(), (&'static str, &'static str)> {
+        if self.spe == 0 {
+            return Err(("spe", "must be ≥ 1"));
+        }
+        if !(self.lambda >= 0.0 && self.lambda.is_finite()) {
+            return Err(("lambda", "must be finite and ≥ 0"));
+        }
+        if !(0.0..=1.0).contains(&self.bsdf_share) {
+            return Err(("bsdf_share", "must lie in [0, 1]"));
+        }
+        Ok(())
+    }
+}
+
+/// Options of the `cms` estimator [Hua 2023].
+///
+/// | parameter | type | default | meaning |
+/// |---|---|---|---|
+/// | `relative` | bool | `true` | optimise relative variance: weight training samples by `1/(surrogate + 0.01)²` [Hua eq. 25] |
+/// | `color` | `"rgb"` \| `"mono"` | `"rgb"` | coefficients per channel or shared [Hua §4.3] |
+/// | `training_spp` | u32 | 16 | samples per pixel of the training phase (kept in the image) |
+/// | `surrogate_spp` | u32 | 1 | samples per pixel of the surrogate image (only with `relative`; kept in the image) |
+/// | `grid_resolution` | `[nx, ny, nz]` \| null | null | cells per axis over the scene bounds; null = adaptive (≈ 16×16 pixels per cell) |
+/// | `max_light_components` | u32 | 1024 | more emitters than this are clustered by spatial proximity |
+/// | `ridge` | f64 | `1e-6` | relative Tikhonov regularisation of each cell system |
+/// | `min_samples` | u64 | 16 | cells with fewer training samples fall back to the plain estimator |
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct CmsOptions {
+    /// Optimise relative variance [Hua eq. 25].
+    pub relative: bool,
+    /// Per-channel or shared coefficients [Hua §4.3].
+    pub color: CvColor,
+    /// Training samples per pixel.
+    pub training_spp: u32,
+    /// Surrogate samples per pixel (with `relative`).
+    pub surrogate_spp: u32,
+    /// Grid cells per axis; `None` = adaptive.
+    pub grid_resolution: Option<[u32; 3]>,
+    /// Clustering threshold for emitters.
+    pub max_light_components: u32,
+    /// Relative ridge of the cell solves.
+    pub ridge: f64,
+    /// Minimum training samples per cell.
+    pub min_samples: u64,
+}
+
+impl Default for CmsOptions {
+    fn default() -> Self {
+        Self {
+            relative: true,
+            color: CvColor::Rgb,
+            training_spp: 16,
+            surrogate_spp: 1,
+            grid_resolution: None,
+            max_light_components: 1024,
+            ridge: 1e-6,
+            min_samples: 16,
+        }
+    }
+}
+
+/// Options of the `per_light_cv` estimator (Vévoda-style, [Hua §7.2]).
+///
+/// | parameter | type | default | meaning |
+/// |---|---|---|---|
+/// | `training_spp` | u32 | 16 | samples per pixel of the training phase (kept in the image) |
+/// | `grid_resolution` | `[nx, ny, nz]` \| null | null | cells per axis; null = adaptive |
+/// | `max_light_components` | u32 | 1024 | more emitters than this are clustered by spatial proximity |
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct PerLightCvOptions {
+    /// Training samples per pixel.
+    pub training_spp: u32,
+    /// Grid cells per axis; `None` = adaptive.
+    pub grid_resolution: Option<[u32; 3]>,
+    /// Clustering threshold for emitters.
+    pub max_light_components: u32,
+}
+
+impl Default for PerLightCvOptions {
+    fn default() -> Self {
+        Self {
+            training_spp: 16,
+            grid_resolution: None,
+            max_light_components: 1024,
+        }
+    }
+}
+
+/// Options of the `optimal_mis` estimator (cells = pixels, direct illumination, [Hua §7.4]).
+///
+/// | parameter | type | default | meaning |
+/// |---|---|---|---|
+/// | `training_spp` | u32 | 16 | samples per pixel of the training phase (kept in the image) |
+/// | `color` | `"rgb"` \| `"mono"` | `"rgb"` | coefficients per channel or shared |
+/// | `max_light_components` | u32 | 1024 | more emitters than this are clustered by spatial proximity |
+/// | `ridge` | f64 | `1e-6` | relative Tikhonov regularisation |
+/// | `min_samples` | u64 | 16 | pixels with fewer training samples fall back to the plain estimator |
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct OptimalMisOptions {
+    /// Training samples per pixel.
+    pub training_spp: u32,
+    /// Per-channel or shared coefficients.
+    pub color: CvColor,
+    /// Clustering threshold for emitters.
+    pub max_light_components: u32,
+    /// Relative ridge of the pixel solves.
+    pub ridge: f64,
+    /// Minimum training samples per pixel.
+    pub min_samples: u64,
+}
+
+impl Default for OptimalMisOptions {
+    fn default() -> Self {
+        Self {
+            training_spp: 16,
+            color: CvColor::Rgb,
+            max_light_components: 1024,
+            ridge: 1e-6,
+            min_samples: 16,
+        }
+    }
+}
+
+/// The phase-structured CV estimators (closed set), with their options.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum PhasedEstimator {
+    /// `cms`.
+    Cms(CmsOptions),
+    /// `per_light_cv`.
+    PerLightCv(PerLightCvOptions),
+    /// `optimal_mis`.
+    OptimalMis(OptimalMisOptions),
+}
+
+impl PhasedEstimator {
+    /// The phase split of a job with `spp` samples per pixel.
+    pub fn phases(&self, spp: u32) -> PhaseSamples {
+        match self {
+            Self::Cms(o) => {
+                let s = if o.relative {
+                    o.surrogate_spp.max(1)
+                } else {
+                    0
+                };
+                PhaseSamples::split(spp, s, o.training_spp)
+            }
+            Self::PerLightCv(o) => PhaseSamples::split(spp, 0, o.training_spp),
+            Self::OptimalMis(o) => PhaseSamples::split(spp, 0, o.training_spp),
+        }
+    }
+
+    /// Whether training samples are weighted by a surrogate image [Hua eq. 25].
+    pub fn relative(&self) -> bool {
+        matches!(self, Self::Cms(o) if o.relative)
+    }
+
+    /// Checks the ranges; returns the offending field and why.
+    pub fn validate(&self) -> Result<(), (&'static str, &'static str)> {
+        let (ridge, grid) = match self {
+            Self::Cms(o) => (Some(o.ridge), o.grid_resolution),
+            Self::PerLightCv(o) => (None, o.grid_resolution),
+            Self::OptimalMis(o) => (Some(o.ridge), None),
+        };
+        if let Some(r) = ridge
+            && !(r >= 0.0 && r.is_finite())
+        {
+            return Err(("ridge", "must be finite and ≥ 0"));
+        }
+        if let Some(g) = grid {
+            if g.contains(&0) {
+                return Err(("grid_resolution", "every axis needs at least one cell"));
+            }
+            if g.iter().map(|&r| u64::from(r)).product::<u64>() > MAX_GRID_CELLS {
+                return Err(("grid_resolution", "more than 2^20 cells"));
+            }
+        }
+        Ok(())
+    }
+
+    /// Solve policy of the cell systems.
+    pub fn solve_policy(&self) -> crate::solve::SolvePolicy {
+        match self {
+            Self::Cms(o) => crate::solve::SolvePolicy {
+                ridge: o.ridge,
+                min_samples: o.min_samples,
+                ..crate::solve::SolvePolicy::default()
+            },
+            Self::OptimalMis(o) => crate::solve::SolvePolicy {
+                ridge: o.ridge,
+                min_samples: o.min_samples,
+                ..crate::solve::SolvePolicy::default()
+            },
+            Self::PerLightCv(_) => crate::solve::SolvePolicy::default(),
+        }
+    }
+}
+
+/// Most grid cells a job may ask for.
+pub const MAX_GRID_CELLS: u64 = 1 << 20;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn split_covers_all_samples_in_order() {
+        for spp in 0..40 {
+            for s in 0..4 {
+                for t in 0..20 {
+                    let p = PhaseSamples::split(spp, s, t);
+                    assert_eq!(p.surrogate.start, 0);
+                    assert_eq!(p.surrogate.end, p.train.start);
+                    assert_eq!(p.train.end, p.render.start);
+                    assert_eq!(p.render.end, spp);
+                    assert!(p.surrogate.len() as u32 <= s && p.train.len() as u32 <= t);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn cms_surrogate_only_when_relative() {
+        let rel = PhasedEstimator::Cms(CmsOptions::default()).phases(64);
+        assert_eq!(
+            (rel.surrogate, rel.train, rel.render),
+            (0..1, 1..17, 17..64)
+        );
+        let abs = PhasedEstimator::Cms(CmsOptions {
+            relative: false,
+            ..CmsOptions::default()
+        })
+        .phases(8);
+        assert_eq!((abs.surrogate, abs.train, abs.render), (0..0, 0..8, 8..8));
+    }
+
+    #[test]
+    fn options_reject_unknown_fields_and_bad_ranges() {
+        let e = serde_json::from_str::<CmsOptions>(r#"{"trainig_spp": 3}"#).unwrap_err();
+        assert!(e.to_string().contains("trainig_spp"), "{e}");
+        let bad = PhasedEstimator::Cms(CmsOptions {
+            grid_resolution: Some([0, 1, 1]),
+            ..CmsOptions::default()
+        });
+        assert_eq!(bad.validate().unwrap_err().0, "grid_resolution");
+        let bad = PhasedEstimator::OptimalMis(OptimalMisOptions {
+            ridge: f64::NAN,
+            ..OptimalMisOptions::default()
+        });
+        assert_eq!(bad.validate().unwrap_err().0, "ridge");
+        assert!(OcvOptions::default().validate().is_ok());
+    }
+}
