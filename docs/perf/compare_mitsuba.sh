@@ -24,6 +24,7 @@ if [ -z "$DRJIT_LIBLLVM_PATH" ]; then
 fi
 
 cargo build --release -p cli >&2
+LOAD_START=$(cut -d' ' -f1-3 /proc/loadavg)
 CVFARM=$ROOT/target/release/cvfarm
 python3 scenes/make_scenes.py --only cornell-box --only many-lights --out "$TMP/native" \
   --mitsuba-xml "$TMP/xml" 2>/dev/null
@@ -58,16 +59,20 @@ img = mi.render(scene, spp=spp, seed=1)
 dr.eval(img); dr.sync_thread()
 secs = time.perf_counter() - t2
 mi.Bitmap(img).write(exr)
+import numpy as np
+pixels = np.array(img)
+mean = pixels.reshape(-1, pixels.shape[-1])[:, :3].astype(np.float64).mean(axis=0).tolist()
 json.dump({"variant": variant, "seconds": secs, "cold_seconds": cold_s, "load_seconds": load_s,
-           "samples": res * res * spp, "samples_per_s": res * res * spp / secs}, open(out, "w"))
+           "samples": res * res * spp, "samples_per_s": res * res * spp / secs, "mean": mean}, open(out, "w"))
 PY
   done
 done
 
-python3 - "$TMP" "$SPP" "$THREADS" "$RES" "$OUT_MD" "$OUT_JSON" <<'PY'
+LOAD_END=$(cut -d' ' -f1-3 /proc/loadavg)
+python3 - "$TMP" "$SPP" "$THREADS" "$RES" "$OUT_MD" "$OUT_JSON" "$LOAD_START" "$LOAD_END" <<'PY'
 import json, os, platform, subprocess, sys, datetime
-tmp, spp, threads, res, out_md, out_json = sys.argv[1:7]
-rows, doc = [], {"spp": int(spp), "threads": int(threads), "resolution": [int(res)] * 2, "max_depth": 5,
+tmp, spp, threads, res, out_md, out_json, load_start, load_end = sys.argv[1:9]
+rows, doc = [], {"spp": int(spp), "load_average_start": load_start, "load_average_end": load_end, "threads": int(threads), "resolution": [int(res)] * 2, "max_depth": 5,
                  "rr_depth": 6, "entries": []}
 cpu = "unknown"
 try:
@@ -78,13 +83,13 @@ import mitsuba
 for s in ["cornell-box", "many-lights"]:
     c = json.load(open(os.path.join(tmp, f"{s}.cvfarm.json")))
     e = {"scene": s, "renderer": "cvfarm", "seconds": c["seconds"], "samples_per_s": c["samples_per_s"],
-         "rays_per_s": c["rays_per_s"], "rays_per_sample": c["rays"] / max(c["samples"], 1)}
+         "rays_per_s": c["rays_per_s"], "rays_per_sample": c["rays"] / max(c["samples"], 1), "mean": c["mean"]}
     doc["entries"].append(e)
     for v in ["scalar_rgb", "llvm_ad_rgb"]:
         m = json.load(open(os.path.join(tmp, f"{s}.{v}.json")))
         doc["entries"].append({"scene": s, "renderer": f"mitsuba {mitsuba.__version__} {v}", "seconds": m["seconds"],
                                "samples_per_s": m["samples_per_s"], "rays_per_s": None,
-                               "cold_seconds": m["cold_seconds"]})
+                               "cold_seconds": m["cold_seconds"], "mean": m["mean"]})
 json.dump(doc, open(out_json, "w"), indent=1)
 lines = [
     "# cvfarm vs Mitsuba 3: render speed at equal spp",
@@ -96,15 +101,25 @@ lines = [
     "max_depth 5, rr_depth 6 (no Russian roulette), path tracer with NEE + BSDF MIS (power heuristic),",
     "box filter. Same scene in both renderers (native JSON / the XML written by `make_scenes.py --mitsuba-xml`).",
     "Mitsuba renders twice in one process; the second render is timed (llvm JIT excluded; the cold first render is listed).",
+    f"Load average (1/5/15 min) at the start of the renders: {load_start}; at the end: {load_end}.",
     "",
-    "| scene | renderer | seconds | samples/s | rays/s | rays/sample | cold run (s) |",
-    "|---|---|---|---|---|---|---|",
+    "| scene | renderer | seconds | samples/s | rays/s | rays/sample | cold run (s) | image mean RGB |",
+    "|---|---|---|---|---|---|---|---|",
 ]
 for e in doc["entries"]:
     rays = f"{e['rays_per_s'] / 1e6:.2f} M" if e.get("rays_per_s") else "–"
     rps = f"{e['rays_per_sample']:.2f}" if e.get("rays_per_sample") else "–"
     warm = f"{e['cold_seconds']:.2f}" if e.get("cold_seconds") is not None else "–"
-    lines.append(f"| {e['scene']} | {e['renderer']} | {e['seconds']:.2f} | {e['samples_per_s'] / 1e6:.3f} M | {rays} | {rps} | {warm} |")
+    mean = ", ".join(f"{v:.4f}" for v in e["mean"])
+    lines.append(f"| {e['scene']} | {e['renderer']} | {e['seconds']:.2f} | {e['samples_per_s'] / 1e6:.3f} M | {rays} | {rps} | {warm} | {mean} |")
+lines += ["", "| scene | cvfarm / scalar_rgb (samples/s) | llvm_ad_rgb / cvfarm | max relative mean difference vs scalar_rgb |",
+          "|---|---|---|---|"]
+for s in ["cornell-box", "many-lights"]:
+    es = {e["renderer"].split()[-1]: e for e in doc["entries"] if e["scene"] == s}
+    c, sc, ll = es["cvfarm"], es["scalar_rgb"], es["llvm_ad_rgb"]
+    diff = max(abs(a - b) / abs(b) for a, b in zip(c["mean"], sc["mean"]) if b != 0)
+    lines.append(f"| {s} | {c['samples_per_s'] / sc['samples_per_s']:.2f}× | "
+                 f"{ll['samples_per_s'] / c['samples_per_s']:.2f}× | {100 * diff:.2f} % |")
 open(out_md, "w").write("\n".join(lines) + "\n")
 print("\n".join(lines))
 PY

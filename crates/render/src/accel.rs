@@ -477,38 +477,51 @@ fn obvhs_ray(o: Vec3, d: Vec3, t_max: f32) -> obvhs::ray::Ray {
 }
 
 /// Per-ray constants of the watertight triangle test: the axis permutation making the
-/// ray direction's largest component `z`, and the shear `(Sx, Sy, Sz)` [Woop et al. 2013].
+/// ray direction's largest component `z`, and the shear `(Sx, Sy, Sz)` [Woop et al. 2013];
+/// also the reciprocal direction for box tests.
 #[derive(Clone, Copy, Debug)]
 struct RayShear {
     o: Vec3,
     d: Vec3,
     k: [usize; 3],
     s: Vec3,
+    /// The origin in the permuted axes `(o[kx], o[ky], o[kz])`.
+    o_perm: Vec3,
+    /// `1 / d` per axis, `f32::MAX` for zero components (finite: no `0 · ∞` in box tests).
+    inv_d: Vec3,
 }
 
 impl RayShear {
     #[inline(always)]
     fn new(o: Vec3, d: Vec3) -> Self {
+        const NEXT: [usize; 3] = [1, 2, 0];
         let a = d.abs();
-        let kz = if a.x > a.y {
-            if a.x > a.z { 0 } else { 2 }
-        } else if a.y > a.z {
-            1
-        } else {
-            2
-        };
-        let mut kx = (kz + 1) % 3;
-        let mut ky = (kx + 1) % 3;
+        // Branch-free choice of the dominant axis (random directions defeat prediction):
+        // x if it beats y and z, else y if it beats z, else z.
+        let x_max = a.x > a.y && a.x > a.z;
+        let y_max = !(a.x > a.y) && a.y > a.z;
+        let kz = usize::from(y_max) + 2 * usize::from(!x_max && !y_max);
+        let kx = NEXT[kz];
+        let ky = NEXT[kx];
+        let dv = d.to_array();
+        let ov = o.to_array();
         // Keep the winding: swap when the dominant component is negative.
-        if d[kz] < 0.0 {
-            std::mem::swap(&mut kx, &mut ky);
-        }
-        let sz = 1.0 / d[kz];
+        let (kx, ky) = if dv[kz] < 0.0 { (ky, kx) } else { (kx, ky) };
+        let recip = Vec3A::ONE / Vec3A::from(d);
+        let inv_d = Vec3::from(Vec3A::select(
+            Vec3A::from(d).cmpeq(Vec3A::ZERO),
+            Vec3A::splat(f32::MAX),
+            recip,
+        ));
+        // Equal to `1 / d[kz]`: the dominant component is never zero for a unit direction.
+        let sz = inv_d.to_array()[kz];
         Self {
             o,
             d,
             k: [kx, ky, kz],
-            s: Vec3::new(d[kx] * sz, d[ky] * sz, sz),
+            s: Vec3::new(dv[kx] * sz, dv[ky] * sz, sz),
+            o_perm: Vec3::new(ov[kx], ov[ky], ov[kz]),
+            inv_d,
         }
     }
 }
@@ -520,7 +533,11 @@ fn intersect_prim(prim: &Prim, ray: &RayShear, t_max: f32) -> Option<(f32, f32, 
         return intersect_sphere(prim.a, prim.b.x, ray.o, ray.d, t_max).map(|t| (t, 0.0, 0.0));
     }
     let [kx, ky, kz] = ray.k;
-    let (a, b, c) = (prim.a - ray.o, prim.b - ray.o, prim.c - ray.o);
+    let (a, b, c) = (
+        (prim.a - ray.o).to_array(),
+        (prim.b - ray.o).to_array(),
+        (prim.c - ray.o).to_array(),
+    );
     // Shear and scale the vertices into ray space (ray along +z from the origin).
     let (ax, ay) = (a[kx] - ray.s.x * a[kz], a[ky] - ray.s.y * a[kz]);
     let (bx, by) = (b[kx] - ray.s.x * b[kz], b[ky] - ray.s.y * b[kz]);

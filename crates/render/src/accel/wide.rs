@@ -278,26 +278,23 @@ impl WideBvh {
                 TAG_INNER => {
                     let node = &self.nodes[index];
                     let (mask, t_in) = boxes.test(node, best_t);
-                    // Push hit children farthest first so the nearest is popped first.
-                    let mut hits = [(0u32, 0f32); LANES];
-                    let mut n = 0;
+                    // Push the hit children sorted by descending entry distance (insertion
+                    // into the stack top) so that the nearest is popped first. Cannot
+                    // overflow: the build checked the tree's stack need (see STACK).
+                    let base = sp;
                     let mut m = mask;
                     while m != 0 {
                         let lane = m.trailing_zeros() as usize;
                         m &= m - 1;
-                        // Insertion into `hits` sorted by descending entry distance.
                         let entry = (node.child[lane], t_in[lane]);
-                        let mut j = n;
-                        while j > 0 && hits[j - 1].1 < entry.1 {
-                            hits[j] = hits[j - 1];
+                        let mut j = sp;
+                        while j > base && stack[j - 1].1 < entry.1 {
+                            stack[j] = stack[j - 1];
                             j -= 1;
                         }
-                        hits[j] = entry;
-                        n += 1;
+                        stack[j] = entry;
+                        sp += 1;
                     }
-                    // Cannot overflow: the build checked the tree's stack need (see STACK).
-                    stack[sp..sp + n].copy_from_slice(&hits[..n]);
-                    sp += n;
                 }
                 TAG_PACKET => {
                     if let Some(h) = packet_closest(&self.packets[index], ray, best_t) {
@@ -457,13 +454,9 @@ struct BoxRay {
 impl BoxRay {
     #[inline(always)]
     fn new(ray: &RayShear) -> Self {
-        let inv = ray
-            .d
-            .to_array()
-            .map(|d| if d == 0.0 { f32::MAX } else { 1.0 / d });
         Self {
             o: ray.o.to_array(),
-            inv,
+            inv: ray.inv_d.to_array(),
             neg: ray.d.to_array().map(|d| d < 0.0),
         }
     }
@@ -533,7 +526,7 @@ fn packet_test(p: &Packet, ray: &RayShear, t_max: f32) -> PacketHits {
 #[inline(always)]
 fn packet_test_portable(p: &Packet, ray: &RayShear, t_max: f32) -> PacketHits {
     let [kx, ky, kz] = ray.k;
-    let (ox, oy, oz) = (ray.o[kx], ray.o[ky], ray.o[kz]);
+    let (ox, oy, oz) = (ray.o_perm.x, ray.o_perm.y, ray.o_perm.z);
     let (sx, sy, sz) = (ray.s.x, ray.s.y, ray.s.z);
     // Sheared vertex coordinates relative to the origin, per vertex.
     let mut x = [[0.0f32; LANES]; 3];
@@ -670,9 +663,9 @@ mod avx2 {
         unsafe {
             let [kx, ky, kz] = ray.k;
             let (ox, oy, oz) = (
-                _mm256_set1_ps(ray.o[kx]),
-                _mm256_set1_ps(ray.o[ky]),
-                _mm256_set1_ps(ray.o[kz]),
+                _mm256_set1_ps(ray.o_perm.x),
+                _mm256_set1_ps(ray.o_perm.y),
+                _mm256_set1_ps(ray.o_perm.z),
             );
             let (sx, sy, sz) = (
                 _mm256_set1_ps(ray.s.x),

@@ -176,8 +176,7 @@ pub fn trace<O: VertexObserver>(
             && ls.pdf.is_finite()
         {
             let wi_local = frame.to_local(ls.wi);
-            let f = bsdf.eval(wo, wi_local);
-            let pdf_bsdf = bsdf.pdf(wo, wi_local);
+            let (f, pdf_bsdf) = bsdf.eval_pdf(wo, wi_local);
             let mut value = Vec3::ZERO;
             let mut visible = false;
             let contributes = f != Vec3::ZERO && ls.radiance != Vec3::ZERO;
