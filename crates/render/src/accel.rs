@@ -498,8 +498,9 @@ impl RayShear {
         let a = d.abs();
         // Branch-free choice of the dominant axis (random directions defeat prediction):
         // x if it beats y and z, else y if it beats z, else z.
-        let x_max = a.x > a.y && a.x > a.z;
-        let y_max = !(a.x > a.y) && a.y > a.z;
+        let x_beats_y = a.x > a.y;
+        let x_max = x_beats_y && a.x > a.z;
+        let y_max = !x_beats_y && a.y > a.z;
         let kz = usize::from(y_max) + 2 * usize::from(!x_max && !y_max);
         let kx = NEXT[kz];
         let ky = NEXT[kx];
