@@ -18,11 +18,13 @@
 //!   `meta`: metrics, OpenAPI, docs).
 //! - [`finish`]: phase completion: image assembly in canonical order, EXR/PNG/stats outputs.
 //! - [`reaper`]: background loop expiring leases and finishing complete jobs.
+//! - [`convergence`]: a job's convergence series (`convergence.csv`), computed from stored results.
 
 #![deny(missing_docs)]
 
 pub mod auth;
 pub mod config;
+pub mod convergence;
 pub mod error;
 pub mod finish;
 pub mod reaper;
@@ -47,6 +49,9 @@ pub struct AppState {
     pub store: Store,
     /// Wakes long-polling lease requests when tasks may have become available.
     pub work_available: Notify,
+    /// Turns `true` when [`App::run`]'s shutdown future resolves, so endless responses
+    /// (the `/v1/events` stream) end and graceful shutdown can drain.
+    pub stopping: tokio::sync::watch::Sender<bool>,
 }
 
 /// A built coordinator, ready to serve.
@@ -92,6 +97,7 @@ impl App {
                 config,
                 store,
                 work_available: Notify::new(),
+                stopping: tokio::sync::watch::Sender::new(false),
             }),
         })
     }
@@ -117,6 +123,11 @@ impl App {
         let reaper = tokio::spawn(reaper::run(self.state.clone(), stop_rx));
         let app = self.router();
         tracing::info!(addr = ?listener.local_addr().ok(), "coordinator listening");
+        let state = self.state.clone();
+        let shutdown = async move {
+            shutdown.await;
+            state.stopping.send_replace(true);
+        };
         let result = axum::serve(listener, app)
             .with_graceful_shutdown(shutdown)
             .await;

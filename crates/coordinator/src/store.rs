@@ -316,6 +316,12 @@ impl Store {
         Ok(store)
     }
 
+    /// The pool, for read-only queries kept beside their routes (`routes::events`,
+    /// `convergence`); SQL must go through [`dollar_placeholders`] for PostgreSQL.
+    pub fn pool(&self) -> &AnyPool {
+        &self.pool
+    }
+
     /// The backend.
     pub fn backend(&self) -> Backend {
         self.backend

@@ -9,6 +9,8 @@
 //! | GET | `/v1/jobs`, `/v1/jobs/{id}` | client | list / status |
 //! | POST | `/v1/jobs/{id}/cancel`, `/pause`, `/resume` | client | cancel, pause, resume |
 //! | GET | `/v1/jobs/{id}/image.exr`, `preview.png`, `stats.json` | client | outputs of a finished job |
+//! | GET | `/v1/jobs/{id}/convergence.csv` | client | convergence series (running jobs too) |
+//! | GET | `/v1/events[?job=ID]` | client | Server-Sent Events: job, phase, progress |
 //! | PUT / GET | `/v1/assets/{sha256}` | client / client or worker | content-addressed upload / download |
 //! | POST | `/v1/workers/register` | enrollment token | per-worker token |
 //! | POST | `/v1/workers/lease` | worker | long-poll a [`protocol::TaskLease`] (204: none) |
@@ -18,6 +20,7 @@
 //! | POST | `/v1/tasks/{id}/fail?attempt=N` | worker | report a failed attempt |
 
 pub mod assets;
+pub mod events;
 pub mod health;
 pub mod jobs;
 pub mod meta;
@@ -42,6 +45,7 @@ pub fn router(state: Arc<AppState>) -> Router {
         .merge(assets::router(state.config.max_asset_body))
         .merge(workers::router())
         .merge(tasks::router(state.config.max_result_body))
+        .merge(events::router())
         .fallback(|| async { AppError::NotFound("route".into()) })
         .layer(DefaultBodyLimit::max(json_limit))
         .layer(tower_http::trace::TraceLayer::new_for_http())
