@@ -133,6 +133,8 @@ pub fn openapi() -> serde_json::Value {
             "/v1/jobs/{id}/image.exr": { "get": op("Multi-layer EXR (beauty, variance, albedo, normal) of a finished job", "client", "200") },
             "/v1/jobs/{id}/preview.png": { "get": op("sRGB preview of a finished job", "client", "200") },
             "/v1/jobs/{id}/stats.json": { "get": op("Time per phase, spp, estimated error, effects simulated", "client", "200") },
+            "/v1/jobs/{id}/convergence.csv": { "get": op("Convergence series seconds,spp,rel_mse_est,tasks_done, one row per completed sample round (running jobs too)", "client", "200") },
+            "/v1/events": { "get": op("Server-Sent Events (text/event-stream): job, phase (coefficients announced), progress; ?job=ID filters; resumes after Last-Event-ID", "client", "200") },
             "/v1/assets/{sha256}": {
                 "put": op("Upload an asset or scene document by content address (body must hash to it)", "client", "201"),
                 "get": op("Download an asset (clients and workers)", "client", "200")
