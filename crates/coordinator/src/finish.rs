@@ -1,20 +1,36 @@
-//! Finishing a job once its last phase is complete: assemble the image from the stored pixel
-//! blocks **in canonical task order** (so the EXR is bitwise-identical for any number of
-//! workers), then store `image.exr` (layers beauty, variance, albedo, normal), `preview.png`
-//! and `stats.json`, and mark the job done.
+//! The phase machine: what happens when the last task of a job's active phase is done.
 //!
-//! Idempotent and restart-safe: outputs are deterministic and inserted with
-//! `ON CONFLICT DO NOTHING`, and the job turns `done` only after they are stored. Whoever gets
-//! there first (the upload that completed the phase, or the reaper after a crash) finishes.
+//! - **Barrier** (a CV job's `surrogate` or `train` phase is complete): the phase's results
+//!   are read in canonical task order and turned into the next phase's input with the shared
+//!   functions of [`protocol::cv`] — the surrogate image [Hua §4.2.1] after `surrogate`; the
+//!   merged training tables, solved per cell [Hua eq. 32–33] on a blocking thread with all
+//!   cores, after `train`. The blob is stored content-addressed, then one transaction moves
+//!   the job to the next phase and records the address on that phase's row
+//!   (`phases.surrogate` / `phases.coefficients`), where its leases read it.
+//! - **Finish** (the last phase is complete): the image is assembled from **all** phases'
+//!   pixel blocks in (phase, task) order (so the EXR is bitwise-identical for any number of
+//!   workers), then `image.exr` (layers beauty, variance, albedo, normal), `preview.png` and
+//!   `stats.json` are stored and the job is marked done.
+//!
+//! Idempotent and restart-safe: barrier blobs and outputs are deterministic and inserted
+//! with `ON CONFLICT DO NOTHING`; the phase moves on (and the job turns `done`) only after
+//! they are stored, in a conditional update that exactly one caller wins. Whoever gets there
+//! first — the upload that completed the phase, the reaper after a crash, another
+//! coordinator on the same PostgreSQL — does it; the others change nothing.
+
+use std::time::Instant;
 
 use protocol::assemble::ImageAccumulator;
-use protocol::lease::{JobState, JobStats, PhaseStats};
+use protocol::cv;
+use protocol::hash::sha256_hex;
+use protocol::job::{JobSpec, PhasedEstimator};
+use protocol::lease::{BarrierStats, JobState, JobStats, PhaseKind, PhaseStats};
 use protocol::{TileResult, frame};
 
 use crate::AppState;
-use crate::store::{JobRow, StoreError, now_ms};
+use crate::store::{JobRow, PhaseRow, StoreError, now_ms};
 
-/// Why finishing failed.
+/// Why advancing failed.
 #[derive(Debug, thiserror::Error)]
 pub enum FinishError {
     /// The store failed.
@@ -35,46 +51,197 @@ pub const OUTPUTS: [(&str, &str); 3] = [
     ("stats.json", "application/json"),
 ];
 
-/// Finishes `job_id` if it is running and its active phase is complete. Returns whether this
-/// call finished it.
+/// What [`advance_job`] did.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Advance {
+    /// Nothing: the job is not running, its phase is incomplete, or another caller won.
+    Nothing,
+    /// The job moved on to the next phase.
+    NextPhase,
+    /// The job finished.
+    Finished,
+}
+
+/// Advances `job_id` if it is running and its active phase is complete: runs the phase
+/// barrier, or finishes the job after its last phase.
 #[tracing::instrument(skip_all, fields(job = job_id))]
-pub async fn finish_job(state: &AppState, job_id: i64) -> Result<bool, FinishError> {
+pub async fn advance_job(state: &AppState, job_id: i64) -> Result<Advance, FinishError> {
     let store = &state.store;
     let Some(job) = store.job(job_id).await? else {
-        return Ok(false);
+        return Ok(Advance::Nothing);
     };
     if job.state != JobState::Running {
-        return Ok(false);
+        return Ok(Advance::Nothing);
     }
     let progress = store.progress(job_id, job.phase_idx).await?;
     if progress.done < progress.total {
-        return Ok(false);
+        return Ok(Advance::Nothing);
     }
-    let blobs = store.phase_results(job_id, job.phase_idx).await?;
-    if blobs.len() as i64 != progress.total {
+    let phases = store.phases(job_id).await?;
+    let Some(active) = phases.iter().find(|p| p.idx == job.phase_idx).cloned() else {
+        return Err(FinishError::Corrupt(format!(
+            "job {job_id} has no phase {}",
+            job.phase_idx
+        )));
+    };
+    if phases.iter().any(|p| p.idx > active.idx) {
+        barrier(state, &job, &active).await
+    } else {
+        finish(state, &job, &phases).await
+    }
+}
+
+/// Finishes `job_id` if its last phase is complete (the reaper's and the upload's entry
+/// point; the same as [`advance_job`]). Returns whether this call changed the job.
+pub async fn finish_job(state: &AppState, job_id: i64) -> Result<bool, FinishError> {
+    Ok(advance_job(state, job_id).await? != Advance::Nothing)
+}
+
+fn estimator_of(job: &JobRow) -> Result<Option<PhasedEstimator>, FinishError> {
+    let spec: JobSpec = serde_json::from_str(&job.spec)
+        .map_err(|e| FinishError::Corrupt(format!("stored spec: {e}")))?;
+    Ok(spec.estimator.phased())
+}
+
+fn decode_all(blobs: &[Vec<u8>], max_pixels: usize) -> Result<Vec<TileResult>, FinishError> {
+    blobs
+        .iter()
+        .map(|b| frame::decode(b, max_pixels).map_err(|e| FinishError::Corrupt(e.to_string())))
+        .collect()
+}
+
+/// The barrier after `phase` (a surrogate or train phase of a CV job).
+async fn barrier(state: &AppState, job: &JobRow, phase: &PhaseRow) -> Result<Advance, FinishError> {
+    let store = &state.store;
+    let Some(est) = estimator_of(job)? else {
+        return Err(FinishError::Corrupt(format!(
+            "job {} has several phases but estimator `{}` has none",
+            job.id, job.estimator
+        )));
+    };
+    let blobs = store.phase_results(job.id, phase.idx).await?;
+    if blobs.len() as i64 != phase.tasks {
         return Err(FinishError::Corrupt(format!(
             "{} results for {} tasks",
             blobs.len(),
-            progress.total
+            phase.tasks
         )));
     }
-    let phases = store.phase_times(job_id).await?;
+    let resolved = job.resolved;
+    let kind = phase.kind;
     let max_pixels = state.config.limits.max_pixels as usize;
-    let job2 = job.clone();
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    // Decoding, denoising, merging and solving are CPU work: off the async threads.
+    let (blob, stats) = tokio::task::spawn_blocking(move || {
+        let t0 = Instant::now();
+        let tiles = decode_all(&blobs, max_pixels)?;
+        let corrupt = |e: cv::CvError| FinishError::Corrupt(e.to_string());
+        match kind {
+            PhaseKind::Surrogate => {
+                let blob = cv::surrogate_blob(&resolved, &tiles).map_err(corrupt)?;
+                let stats = BarrierStats {
+                    seconds: t0.elapsed().as_secs_f64(),
+                    blob: sha256_hex(&blob),
+                    ..BarrierStats::default()
+                };
+                Ok((blob, stats))
+            }
+            PhaseKind::Train => {
+                let tables = tiles
+                    .iter()
+                    .map(|t| cv::check_train_block(&est, &resolved, t))
+                    .collect::<Result<Vec<_>, _>>()
+                    .map_err(corrupt)?;
+                let merged = cv::merge_train(cv::table_kind(&est), tables).map_err(corrupt)?;
+                let solved = merged.solve(&est.solve_policy(), threads);
+                let blob = solved.encode();
+                let (cells, cells_solved, cells_fallback) = cv::solve_summary(&solved);
+                let stats = BarrierStats {
+                    seconds: t0.elapsed().as_secs_f64(),
+                    blob: sha256_hex(&blob),
+                    cells,
+                    cells_solved,
+                    cells_fallback,
+                    rejected_samples: solved.rejected,
+                };
+                Ok((blob, stats))
+            }
+            PhaseKind::Render => Err(FinishError::Corrupt(
+                "a render phase is followed by another phase".into(),
+            )),
+        }
+    })
+    .await
+    .map_err(|e| FinishError::Image(e.to_string()))??;
+    // The blob first: a lease of the next phase must never name a missing blob.
+    store.put_blob(&stats.blob, &blob).await?;
+    let stats_json =
+        serde_json::to_string(&stats).map_err(|e| FinishError::Image(e.to_string()))?;
+    let (surrogate, coefficients) = match kind {
+        PhaseKind::Surrogate => (Some(stats.blob.as_str()), None),
+        _ => (None, Some(stats.blob.as_str())),
+    };
+    let advanced = store
+        .advance_phase(job.id, phase.idx, &stats_json, surrogate, coefficients)
+        .await?;
+    if !advanced {
+        return Ok(Advance::Nothing);
+    }
+    tracing::info!(
+        phase = kind.as_str(),
+        blob = %stats.blob,
+        cells = stats.cells,
+        solved = stats.cells_solved,
+        seconds = stats.seconds,
+        "phase barrier passed"
+    );
+    state.work_available.notify_waiters();
+    Ok(Advance::NextPhase)
+}
+
+/// Assembles and stores the outputs after the last phase, then marks the job done.
+async fn finish(
+    state: &AppState,
+    job: &JobRow,
+    phases: &[PhaseRow],
+) -> Result<Advance, FinishError> {
+    let store = &state.store;
+    let mut blobs = Vec::new();
+    let mut attempts = 0;
+    for p in phases {
+        let b = store.phase_results(job.id, p.idx).await?;
+        if b.len() as i64 != p.tasks {
+            return Err(FinishError::Corrupt(format!(
+                "phase {}: {} results for {} tasks",
+                p.kind.as_str(),
+                b.len(),
+                p.tasks
+            )));
+        }
+        attempts += store.progress(job.id, p.idx).await?.attempts;
+        blobs.extend(b);
+    }
+    let max_pixels = state.config.limits.max_pixels as usize;
+    let (job2, phases2) = (job.clone(), phases.to_vec());
     // Decoding, summing and EXR encoding are CPU work: keep them off the async workers.
     let outputs = tokio::task::spawn_blocking(move || {
-        build_outputs(&job2, &blobs, max_pixels, progress.attempts, &phases)
+        build_outputs(&job2, &blobs, max_pixels, attempts, &phases2)
     })
     .await
     .map_err(|e| FinishError::Image(e.to_string()))??;
     for ((name, ctype), data) in OUTPUTS.iter().zip(&outputs) {
-        store.put_artifact(job_id, name, ctype, data).await?;
+        store.put_artifact(job.id, name, ctype, data).await?;
     }
-    let finished = store.end_job(job_id, JobState::Done, None).await?;
+    if let Some(last) = phases.last() {
+        store.finish_phase(job.id, last.idx).await?;
+    }
+    let finished = store.end_job(job.id, JobState::Done, None).await?;
     if finished {
-        tracing::info!(tasks = progress.total, "job finished");
+        tracing::info!("job finished");
+        Ok(Advance::Finished)
+    } else {
+        Ok(Advance::Nothing)
     }
-    Ok(finished)
 }
 
 fn build_outputs(
@@ -82,7 +249,7 @@ fn build_outputs(
     blobs: &[Vec<u8>],
     max_pixels: usize,
     attempts: i64,
-    phases: &[(String, Option<i64>, Option<i64>)],
+    phases: &[PhaseRow],
 ) -> Result<[Vec<u8>; 3], FinishError> {
     let r = &job.resolved;
     let mut acc = ImageAccumulator::new(r.width, r.height);
@@ -104,13 +271,18 @@ fn build_outputs(
         job: *r,
         phases: phases
             .iter()
-            .map(|(name, start, end)| PhaseStats {
-                name: name.clone(),
-                seconds: match (start, end) {
+            .map(|p| PhaseStats {
+                name: p.kind.as_str().to_owned(),
+                seconds: match (p.started_ms, p.last_done_ms) {
                     (Some(s), Some(e)) => (e - s).max(0) as f64 / 1000.0,
                     _ => 0.0,
                 },
-                tasks: blobs.len() as u64,
+                tasks: p.tasks.max(0) as u64,
+                spp: p.spp,
+                barrier: p
+                    .barrier
+                    .as_deref()
+                    .and_then(|b| serde_json::from_str::<BarrierStats>(b).ok()),
             })
             .collect(),
         total_seconds: (now - job.created_ms).max(0) as f64 / 1000.0,

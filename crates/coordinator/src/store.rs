@@ -16,7 +16,7 @@ use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::{SystemTime, UNIX_EPOCH};
 
-use protocol::job::{ResolvedJob, TaskPlan, TileRect};
+use protocol::job::{PhasePlan, ResolvedJob, TileRect};
 use protocol::lease::{JobState, PhaseKind};
 use sqlx::any::{AnyPoolOptions, AnyRow};
 use sqlx::{AnyPool, Row};
@@ -139,8 +139,36 @@ pub struct NewJob<'a> {
     pub effects: &'a [String],
     /// Priority.
     pub priority: i64,
-    /// The task plan of the first phase.
-    pub plan: &'a [TaskPlan],
+    /// The phase plan: every phase row and task is created with the job (a later phase's
+    /// tasks are leased only once the job's `phase_idx` reaches them).
+    pub phases: &'a [PhasePlan],
+}
+
+/// A phase of a job.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PhaseRow {
+    /// Index (0-based, the order of the phases).
+    pub idx: i64,
+    /// Which phase.
+    pub kind: PhaseKind,
+    /// Samples per pixel it renders.
+    pub spp: u32,
+    /// Surrogate image its tasks train with (content address).
+    pub surrogate: Option<String>,
+    /// Coefficient table its tasks render with (content address).
+    pub coefficients: Option<String>,
+    /// Layout signature of its accepted cell blocks (train phases).
+    pub layout: Option<String>,
+    /// JSON `BarrierStats` of the barrier after it.
+    pub barrier: Option<String>,
+    /// First lease.
+    pub started_ms: Option<i64>,
+    /// Barrier passed (or job finished).
+    pub finished_ms: Option<i64>,
+    /// Last accepted result.
+    pub last_done_ms: Option<i64>,
+    /// Tasks in the phase.
+    pub tasks: i64,
 }
 
 /// Store-wide counts for `/metrics`.
@@ -435,7 +463,7 @@ impl Store {
 
     // ---- jobs --------------------------------------------------------------------------
 
-    /// Creates a job with one `render` phase and its tasks, in one transaction.
+    /// Creates a job with all its phases and their tasks, in one transaction.
     pub async fn create_job(&self, job: &NewJob<'_>) -> Result<i64> {
         let NewJob {
             spec_json,
@@ -444,7 +472,7 @@ impl Store {
             estimator,
             effects,
             priority,
-            plan,
+            phases,
         } = *job;
         let now = now_ms();
         let resolved_json =
@@ -465,37 +493,43 @@ impl Store {
             .fetch_one(&mut *tx)
             .await?;
         let job_id: i64 = row.try_get("id")?;
-        let sql = self.sql("INSERT INTO phases (job_id, idx, name) VALUES (?, 0, ?)");
-        sqlx::query(&sql)
-            .bind(job_id)
-            .bind(PhaseKind::Render.as_str())
-            .execute(&mut *tx)
-            .await?;
-        // Multi-row inserts keep large plans fast (100 rows × 9 parameters per statement).
-        for chunk in plan.chunks(100) {
-            let mut s = String::from(
-                "INSERT INTO tasks (job_id, phase_idx, seq, x0, y0, width, height, sample_start, sample_end, state) VALUES ",
-            );
-            for i in 0..chunk.len() {
-                if i > 0 {
-                    s.push(',');
+        for (idx, phase) in phases.iter().enumerate() {
+            let idx = idx as i64;
+            let sql = self.sql("INSERT INTO phases (job_id, idx, name, spp) VALUES (?, ?, ?, ?)");
+            sqlx::query(&sql)
+                .bind(job_id)
+                .bind(idx)
+                .bind(phase.kind.as_str())
+                .bind(i64::from(phase.samples.end - phase.samples.start))
+                .execute(&mut *tx)
+                .await?;
+            // Multi-row inserts keep large plans fast (100 rows × 10 parameters per statement).
+            for chunk in phase.tasks.chunks(100) {
+                let mut s = String::from(
+                    "INSERT INTO tasks (job_id, phase_idx, seq, x0, y0, width, height, sample_start, sample_end, state) VALUES ",
+                );
+                for i in 0..chunk.len() {
+                    if i > 0 {
+                        s.push(',');
+                    }
+                    s.push_str("(?, ?, ?, ?, ?, ?, ?, ?, ?, 'pending')");
                 }
-                s.push_str("(?, 0, ?, ?, ?, ?, ?, ?, ?, 'pending')");
+                let sql = self.sql(&s);
+                let mut q = sqlx::query(&sql);
+                for t in chunk {
+                    q = q
+                        .bind(job_id)
+                        .bind(idx)
+                        .bind(i64::from(t.seq))
+                        .bind(i64::from(t.rect.x0))
+                        .bind(i64::from(t.rect.y0))
+                        .bind(i64::from(t.rect.width))
+                        .bind(i64::from(t.rect.height))
+                        .bind(i64::from(t.sample_start))
+                        .bind(i64::from(t.sample_end));
+                }
+                q.execute(&mut *tx).await?;
             }
-            let sql = self.sql(&s);
-            let mut q = sqlx::query(&sql);
-            for t in chunk {
-                q = q
-                    .bind(job_id)
-                    .bind(i64::from(t.seq))
-                    .bind(i64::from(t.rect.x0))
-                    .bind(i64::from(t.rect.y0))
-                    .bind(i64::from(t.rect.width))
-                    .bind(i64::from(t.rect.height))
-                    .bind(i64::from(t.sample_start))
-                    .bind(i64::from(t.sample_end));
-            }
-            q.execute(&mut *tx).await?;
         }
         tx.commit().await?;
         Ok(job_id)
@@ -633,6 +667,137 @@ impl Store {
                 ))
             })
             .collect()
+    }
+
+    /// The phases of a job in order, with their task counts and last accepted result.
+    pub async fn phases(&self, job_id: i64) -> Result<Vec<PhaseRow>> {
+        let sql = self.sql(
+            "SELECT p.idx AS idx, p.name AS name, p.spp AS spp, p.surrogate AS surrogate, \
+                    p.coefficients AS coefficients, p.layout AS layout, p.barrier AS barrier, \
+                    p.started_ms AS started_ms, p.finished_ms AS finished_ms, \
+                    (SELECT MAX(t.done_ms) FROM tasks t WHERE t.job_id = p.job_id AND t.phase_idx = p.idx) AS last_ms, \
+                    (SELECT COUNT(*) FROM tasks t WHERE t.job_id = p.job_id AND t.phase_idx = p.idx) AS tasks \
+             FROM phases p WHERE p.job_id = ? ORDER BY p.idx",
+        );
+        let rows = sqlx::query(&sql).bind(job_id).fetch_all(&self.pool).await?;
+        rows.iter()
+            .map(|r| {
+                let name: String = r.try_get("name")?;
+                Ok(PhaseRow {
+                    idx: r.try_get("idx")?,
+                    kind: PhaseKind::parse(&name)
+                        .ok_or_else(|| StoreError::Corrupt(format!("phase name {name}")))?,
+                    spp: u32_of(r, "spp")?,
+                    surrogate: r.try_get("surrogate")?,
+                    coefficients: r.try_get("coefficients")?,
+                    layout: r.try_get("layout")?,
+                    barrier: r.try_get("barrier")?,
+                    started_ms: r.try_get("started_ms")?,
+                    finished_ms: r.try_get("finished_ms")?,
+                    last_done_ms: r.try_get("last_ms")?,
+                    tasks: r.try_get("tasks")?,
+                })
+            })
+            .collect()
+    }
+
+    /// One phase of a job.
+    pub async fn phase(&self, job_id: i64, idx: i64) -> Result<Option<PhaseRow>> {
+        Ok(self
+            .phases(job_id)
+            .await?
+            .into_iter()
+            .find(|p| p.idx == idx))
+    }
+
+    /// Records the layout signature of a train phase's cell blocks if none is recorded yet;
+    /// returns the recorded one.
+    pub async fn set_phase_layout(&self, job_id: i64, idx: i64, layout: &str) -> Result<()> {
+        let sql = self
+            .sql("UPDATE phases SET layout = ? WHERE job_id = ? AND idx = ? AND layout IS NULL");
+        sqlx::query(&sql)
+            .bind(layout)
+            .bind(job_id)
+            .bind(idx)
+            .execute(&self.pool)
+            .await?;
+        Ok(())
+    }
+
+    /// The phase barrier: in one transaction, moves the job from phase `from` to `from + 1`
+    /// (only if it is still at `from` and running or paused), marks phase `from` finished with
+    /// `barrier` (JSON), and gives phase `from + 1` its surrogate / coefficient addresses.
+    /// Returns whether this call advanced the job (false: another caller did, or the job
+    /// ended); a repeated call is a no-op.
+    pub async fn advance_phase(
+        &self,
+        job_id: i64,
+        from: i64,
+        barrier: &str,
+        surrogate: Option<&str>,
+        coefficients: Option<&str>,
+    ) -> Result<bool> {
+        let now = now_ms();
+        let mut tx = self.pool.begin().await?;
+        let sql = self.sql(
+            "UPDATE jobs SET phase_idx = ? WHERE id = ? AND phase_idx = ? AND state IN ('running', 'paused')",
+        );
+        let r = sqlx::query(&sql)
+            .bind(from + 1)
+            .bind(job_id)
+            .bind(from)
+            .execute(&mut *tx)
+            .await?;
+        if r.rows_affected() != 1 {
+            tx.rollback().await?;
+            return Ok(false);
+        }
+        let sql =
+            self.sql("UPDATE phases SET finished_ms = ?, barrier = ? WHERE job_id = ? AND idx = ?");
+        sqlx::query(&sql)
+            .bind(now)
+            .bind(barrier)
+            .bind(job_id)
+            .bind(from)
+            .execute(&mut *tx)
+            .await?;
+        let sql = self.sql(
+            "UPDATE phases SET surrogate = COALESCE(?, surrogate), coefficients = COALESCE(?, coefficients) \
+             WHERE job_id = ? AND idx = ?",
+        );
+        sqlx::query(&sql)
+            .bind(surrogate.map(str::to_owned))
+            .bind(coefficients.map(str::to_owned))
+            .bind(job_id)
+            .bind(from + 1)
+            .execute(&mut *tx)
+            .await?;
+        tx.commit().await?;
+        Ok(true)
+    }
+
+    /// Marks the last phase of a finished job finished (no-op when already marked).
+    pub async fn finish_phase(&self, job_id: i64, idx: i64) -> Result<()> {
+        let sql = self.sql(
+            "UPDATE phases SET finished_ms = ? WHERE job_id = ? AND idx = ? AND finished_ms IS NULL",
+        );
+        sqlx::query(&sql)
+            .bind(now_ms())
+            .bind(job_id)
+            .bind(idx)
+            .execute(&self.pool)
+            .await?;
+        Ok(())
+    }
+
+    /// The newest coefficient table address of a job (the render phase's), if solved.
+    pub async fn coefficients_of(&self, job_id: i64) -> Result<Option<String>> {
+        Ok(self
+            .phases(job_id)
+            .await?
+            .into_iter()
+            .rev()
+            .find_map(|p| p.coefficients))
     }
 
     /// Accepted results of a phase in canonical task order.

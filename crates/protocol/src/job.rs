@@ -7,7 +7,7 @@
 //! |---|---|---|---|
 //! | `scene` | `{ "inline": SceneDesc }` or `{ "bundle": sha256 }` | — | the scene, inline native JSON or an uploaded scene document by content address |
 //! | `assets` | map name → sha256 | `{}` | asset files the scene names (meshes, textures), uploaded with `PUT /v1/assets/{sha256}` |
-//! | `estimator` | [`EstimatorSpec`] | `{ "kind": "path" }` | which estimator renders the job |
+//! | `estimator` | [`EstimatorSpec`] | `{ "kind": "path" }` | which estimator renders the job, with its options (`path`, `ocv`, `cms`, `per_light_cv`, `optimal_mis`) |
 //! | `spp` | int | 16 | samples per pixel |
 //! | `time_budget_s` | seconds | — | alternative budget (not yet supported) |
 //! | `target_rel_mse` | number | — | alternative budget (not yet supported) |
@@ -23,14 +23,23 @@
 //!   "estimator": { "kind": "path", "mis": "power" }, "spp": 16, "seed": 7, "tile_size": 16 }
 //! ```
 //!
-//! The task plan ([`plan_tasks`]) is a pure function of the spec: tiles in row-major order,
-//! each split into sample ranges in ascending order. It never depends on the number of workers.
+//! The phase plan ([`plan_phases`]) is a pure function of the spec: per phase, tiles in
+//! row-major order, each split into sample ranges in ascending order. It never depends on the
+//! number of workers. A CV job (`cms`, `per_light_cv`, `optimal_mis`) has the phases
+//! surrogate → train → render of DESIGN §1; `path` and `ocv` have one render phase.
 
 use std::collections::BTreeMap;
 
+use std::ops::Range;
+
+pub use estimators::spec::{
+    CmsOptions, CvColor, OcvOptions, OptimalMisOptions, PerLightCvOptions, PhasedEstimator,
+    TRAIN_TILE,
+};
 use serde::{Deserialize, Serialize};
 
 use crate::hash::is_content_address;
+use crate::lease::PhaseKind;
 
 /// The body of `POST /v1/jobs`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -92,22 +101,36 @@ pub enum SceneSource {
 
 /// The estimator of a job: `{ "kind": NAME, ...options }`.
 ///
-/// Only `path` is implemented so far; the other kinds of DESIGN §4 parse (with any options)
+/// The CV estimators carry the option structs of [`estimators::spec`] — the same types the
+/// renderer (`render::integrator::Estimator`) and `cvfarm render` use, so a job's options mean
+/// the same thing locally and on the farm. Every option struct rejects unknown fields and
+/// fills absent ones with its defaults. `rerender` and `gradient` parse (with any options)
 /// so that the coordinator can answer `422 unsupported` naming the estimator, instead of a
 /// confusing "unknown variant".
+///
+/// | kind | options | phases ([`plan_phases`]) |
+/// |---|---|---|
+/// | `path` | [`PathOptions`] | render |
+/// | `ocv` | [`OcvOptions`] [Fan 2006] | render |
+/// | `cms` | [`CmsOptions`] [Hua 2023] | surrogate (with `relative`), train, render |
+/// | `per_light_cv` | [`PerLightCvOptions`] [Hua §7.2] | train, render |
+/// | `optimal_mis` | [`OptimalMisOptions`] [Hua §7.4] | train, render |
+///
+/// The CV estimators use the power heuristic and uniform light selection for the parts
+/// outside the controlled direct lighting (the defaults of `cvfarm render`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
 pub enum EstimatorSpec {
     /// Baseline NEE + BSDF MIS path tracer.
     Path(PathOptions),
-    /// Fan et al. 2006 optimizing control variates (not yet supported).
-    Ocv(OpaqueOptions),
-    /// Hua et al. 2023 controlled mixture sampling (not yet supported).
-    Cms(OpaqueOptions),
-    /// Per-light CV as compared in [Hua §7.2] (not yet supported).
-    PerLightCv(OpaqueOptions),
-    /// Optimal MIS, cells = pixels [Hua §7.4] (not yet supported).
-    OptimalMis(OpaqueOptions),
+    /// Fan et al. 2006 optimizing control variates.
+    Ocv(OcvOptions),
+    /// Hua et al. 2023 controlled mixture sampling.
+    Cms(CmsOptions),
+    /// Per-light CV as compared in [Hua §7.2].
+    PerLightCv(PerLightCvOptions),
+    /// Optimal MIS, cells = pixels [Hua §7.4].
+    OptimalMis(OptimalMisOptions),
     /// Rousselle re-rendering (not yet supported).
     Rerender(OpaqueOptions),
     /// Rousselle gradient-domain (not yet supported).
@@ -134,9 +157,40 @@ impl EstimatorSpec {
         }
     }
 
-    /// Whether the farm can run this estimator yet.
+    /// Whether the farm can run this estimator.
     pub fn is_supported(&self) -> bool {
-        matches!(self, Self::Path(_))
+        matches!(
+            self,
+            Self::Path(_) | Self::Ocv(_) | Self::Cms(_) | Self::PerLightCv(_) | Self::OptimalMis(_)
+        )
+    }
+
+    /// The phase-structured form (`cms`, `per_light_cv`, `optimal_mis`); `None` for the
+    /// estimators rendered in one pass.
+    pub fn phased(&self) -> Option<PhasedEstimator> {
+        match *self {
+            Self::Cms(o) => Some(PhasedEstimator::Cms(o)),
+            Self::PerLightCv(o) => Some(PhasedEstimator::PerLightCv(o)),
+            Self::OptimalMis(o) => Some(PhasedEstimator::OptimalMis(o)),
+            _ => None,
+        }
+    }
+
+    /// Checks the option ranges; the error names the option (`estimator.NAME`).
+    pub fn validate(&self) -> Result<(), SpecError> {
+        let r = match self {
+            Self::Ocv(o) => o.validate(),
+            _ => match self.phased() {
+                Some(p) => p.validate(),
+                None => Ok(()),
+            },
+        };
+        r.map_err(|(field, why)| {
+            SpecError::invalid(
+                &format!("estimator.{field}"),
+                format!("estimator `{}` option `{field}` {why}", self.name()),
+            )
+        })
     }
 }
 
@@ -280,11 +334,12 @@ impl JobSpec {
             return Err(SpecError::unsupported(
                 "estimator.kind",
                 format!(
-                    "estimator `{}` is not yet supported by this farm (supported: path)",
+                    "estimator `{}` is not yet supported by this farm (supported: path, ocv, cms, per_light_cv, optimal_mis)",
                     self.estimator.name()
                 ),
             ));
         }
+        self.estimator.validate()?;
         if self.time_budget_s.is_some() {
             return Err(SpecError::unsupported(
                 "time_budget_s",
@@ -378,12 +433,12 @@ impl JobSpec {
             tile_size: self.tile_size,
             samples_per_task,
         };
-        if resolved.task_count() > limits.max_tasks {
+        let tasks = plan_task_count(&resolved, &self.estimator);
+        if tasks > limits.max_tasks {
             return Err(SpecError::invalid(
                 "tile_size",
                 format!(
-                    "the job would have {} tasks, more than the limit of {}",
-                    resolved.task_count(),
+                    "the job would have {tasks} tasks, more than the limit of {}",
                     limits.max_tasks
                 ),
             ));
@@ -434,44 +489,109 @@ pub struct TaskPlan {
     pub sample_end: u32,
 }
 
+/// One phase of a job's plan: its kind, the sample indices it renders and its tasks in
+/// canonical order (`seq` dense from 0 within the phase).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct PhasePlan {
+    /// Which phase.
+    pub kind: PhaseKind,
+    /// Sample indices of every pixel rendered in this phase.
+    pub samples: Range<u32>,
+    /// Tile edge of the phase's tasks.
+    pub tile_size: u32,
+    /// Tasks: tiles in row-major order, each tile's sample ranges ascending.
+    pub tasks: Vec<TaskPlan>,
+}
+
 impl ResolvedJob {
-    fn tiles(&self) -> (u32, u32) {
-        (
-            self.width.div_ceil(self.tile_size),
-            self.height.div_ceil(self.tile_size),
-        )
-    }
-
-    fn ranges(&self) -> u32 {
-        self.spp.div_ceil(self.samples_per_task)
-    }
-
-    /// Number of tasks [`plan_tasks`] produces.
+    /// Number of tasks of the `path` plan ([`plan_tasks`]).
     pub fn task_count(&self) -> u64 {
-        let (tx, ty) = self.tiles();
-        u64::from(tx) * u64::from(ty) * u64::from(self.ranges())
+        range_task_count(self, self.tile_size, &(0..self.spp), self.samples_per_task)
     }
 }
 
-/// The canonical decomposition of a render phase: tiles in row-major order, each tile's
-/// sample ranges ascending. A pure function of the resolved job.
-pub fn plan_tasks(job: &ResolvedJob) -> Vec<TaskPlan> {
-    let (tx, ty) = job.tiles();
-    let mut out = Vec::with_capacity(usize::try_from(job.task_count()).unwrap_or(0));
+fn tiles_of(job: &ResolvedJob, tile: u32) -> u64 {
+    u64::from(job.width.div_ceil(tile)) * u64::from(job.height.div_ceil(tile))
+}
+
+fn range_task_count(job: &ResolvedJob, tile: u32, samples: &Range<u32>, per_task: u32) -> u64 {
+    let n = samples.end.saturating_sub(samples.start);
+    tiles_of(job, tile) * u64::from(n.div_ceil(per_task.max(1)))
+}
+
+/// Phase shapes of a job: (kind, tile edge, samples, samples per task), empty phases left out.
+fn phase_shapes(job: &ResolvedJob, est: &EstimatorSpec) -> Vec<(PhaseKind, u32, Range<u32>, u32)> {
+    let spt = job.samples_per_task;
+    let Some(p) = est.phased() else {
+        return vec![(PhaseKind::Render, job.tile_size, 0..job.spp, spt)];
+    };
+    let ph = p.phases(job.spp);
+    let mut out = Vec::with_capacity(3);
+    // The surrogate exists only for relative-variance training [Hua eq. 25] (as in
+    // `render::integrator::cv::CvJob::needs_surrogate`).
+    if p.relative() && !ph.surrogate.is_empty() {
+        out.push((PhaseKind::Surrogate, job.tile_size, ph.surrogate, spt));
+    }
+    // Training tiles are fixed and never split in samples: the canonical merge order of
+    // the accumulators is independent of the job's tile size and of `samples_per_task`.
+    if !ph.train.is_empty() {
+        let whole = ph.train.end - ph.train.start;
+        out.push((PhaseKind::Train, TRAIN_TILE, ph.train, whole));
+    }
+    if !ph.render.is_empty() {
+        out.push((PhaseKind::Render, job.tile_size, ph.render, spt));
+    }
+    out
+}
+
+/// Total number of tasks of [`plan_phases`], computed without building the plan.
+pub fn plan_task_count(job: &ResolvedJob, est: &EstimatorSpec) -> u64 {
+    phase_shapes(job, est)
+        .iter()
+        .map(|(_, tile, samples, spt)| range_task_count(job, *tile, samples, *spt))
+        .sum()
+}
+
+/// The canonical phase plan of a job, a pure function of the resolved job and the estimator
+/// (never of the worker count):
+/// - `path`, `ocv`: one `render` phase, tiles of `tile_size`, `0..spp` split by
+///   `samples_per_task` (= [`plan_tasks`]);
+/// - `cms`, `per_light_cv`, `optimal_mis` (sample ranges from
+///   [`PhasedEstimator::phases`]): `surrogate` (only for relative-variance `cms`; tiles of
+///   `tile_size`, split by `samples_per_task`), `train` (tiles of [`TRAIN_TILE`], the whole
+///   training range, one task per tile), `render` (tiles of `tile_size`, split by
+///   `samples_per_task`). Phases without samples are left out.
+pub fn plan_phases(job: &ResolvedJob, est: &EstimatorSpec) -> Vec<PhasePlan> {
+    phase_shapes(job, est)
+        .into_iter()
+        .map(|(kind, tile, samples, spt)| PhasePlan {
+            kind,
+            tasks: plan_range(job, tile, samples.clone(), spt),
+            samples,
+            tile_size: tile,
+        })
+        .collect()
+}
+
+fn plan_range(job: &ResolvedJob, tile: u32, samples: Range<u32>, per_task: u32) -> Vec<TaskPlan> {
+    let per_task = per_task.max(1);
+    let (tx, ty) = (job.width.div_ceil(tile), job.height.div_ceil(tile));
+    let count = range_task_count(job, tile, &samples, per_task);
+    let mut out = Vec::with_capacity(usize::try_from(count).unwrap_or(0));
     let mut seq = 0u32;
     for j in 0..ty {
         for i in 0..tx {
-            let x0 = i * job.tile_size;
-            let y0 = j * job.tile_size;
+            let x0 = i * tile;
+            let y0 = j * tile;
             let rect = TileRect {
                 x0,
                 y0,
-                width: job.tile_size.min(job.width - x0),
-                height: job.tile_size.min(job.height - y0),
+                width: tile.min(job.width - x0),
+                height: tile.min(job.height - y0),
             };
-            let mut s = 0;
-            while s < job.spp {
-                let e = (s + job.samples_per_task).min(job.spp);
+            let mut s = samples.start;
+            while s < samples.end {
+                let e = s.saturating_add(per_task).min(samples.end);
                 out.push(TaskPlan {
                     seq,
                     rect,
@@ -484,6 +604,12 @@ pub fn plan_tasks(job: &ResolvedJob) -> Vec<TaskPlan> {
         }
     }
     out
+}
+
+/// The canonical decomposition of a one-pass render phase: tiles in row-major order, each
+/// tile's sample ranges ascending. A pure function of the resolved job.
+pub fn plan_tasks(job: &ResolvedJob) -> Vec<TaskPlan> {
+    plan_range(job, job.tile_size, 0..job.spp, job.samples_per_task)
 }
 
 #[cfg(test)]
@@ -533,11 +659,115 @@ mod tests {
 
     #[test]
     fn known_but_unimplemented_estimator_is_unsupported() {
-        let s = spec(serde_json::json!({"estimator": {"kind": "cms", "train_spp": 16}})).unwrap();
+        let s = spec(serde_json::json!({"estimator": {"kind": "gradient", "x": 16}})).unwrap();
         let e = s.resolve(&scene(), &Limits::default()).unwrap_err();
         assert_eq!(e.code, "unsupported");
         assert_eq!(e.field, "estimator.kind");
-        assert!(e.message.contains("cms"));
+        assert!(e.message.contains("gradient"));
+    }
+
+    #[test]
+    fn cv_options_are_typed_and_validated_naming_the_option() {
+        let e =
+            spec(serde_json::json!({"estimator": {"kind": "cms", "train_spp": 16}})).unwrap_err();
+        assert!(e.to_string().contains("train_spp"), "{e}");
+        let s = spec(
+            serde_json::json!({"estimator": {"kind": "cms", "training_spp": 8, "color": "mono"}}),
+        )
+        .unwrap();
+        let EstimatorSpec::Cms(o) = s.estimator else {
+            panic!("not cms")
+        };
+        assert_eq!(
+            (o.training_spp, o.color, o.relative),
+            (8, CvColor::Mono, true)
+        );
+        let s =
+            spec(serde_json::json!({"estimator": {"kind": "cms", "grid_resolution": [0, 2, 2]}}))
+                .unwrap();
+        let e = s.resolve(&scene(), &Limits::default()).unwrap_err();
+        assert_eq!(
+            (e.code, e.field.as_str()),
+            ("invalid_spec", "estimator.grid_resolution")
+        );
+        let s = spec(serde_json::json!({"estimator": {"kind": "ocv", "spe": 0}})).unwrap();
+        let e = s.resolve(&scene(), &Limits::default()).unwrap_err();
+        assert_eq!(e.field, "estimator.spe");
+        for kind in ["ocv", "cms", "per_light_cv", "optimal_mis"] {
+            let s = spec(serde_json::json!({"estimator": {"kind": kind}})).unwrap();
+            assert!(s.estimator.is_supported());
+            s.resolve(&scene(), &Limits::default()).unwrap();
+        }
+    }
+
+    #[test]
+    fn cms_phase_plan_follows_the_estimator_split() {
+        // 40x24, tile 16, spp 24, samples_per_task 3; cms relative: surrogate 0..1,
+        // train 1..17, render 17..24.
+        let s = spec(
+            serde_json::json!({"estimator": {"kind": "cms"}, "tile_size": 16, "spp": 24,
+                                        "samples_per_task": 3}),
+        )
+        .unwrap();
+        let r = s.resolve(&scene(), &Limits::default()).unwrap();
+        let plan = plan_phases(&r, &s.estimator);
+        let kinds: Vec<_> = plan.iter().map(|p| p.kind).collect();
+        assert_eq!(
+            kinds,
+            [PhaseKind::Surrogate, PhaseKind::Train, PhaseKind::Render]
+        );
+        assert_eq!(plan[0].tasks.len(), 3 * 2);
+        // Training: tiles of TRAIN_TILE, the whole range in one task per tile.
+        assert_eq!(plan[1].tasks.len(), 2);
+        assert!(
+            plan[1]
+                .tasks
+                .iter()
+                .all(|t| (t.sample_start, t.sample_end) == (1, 17))
+        );
+        assert_eq!(
+            plan[1].tasks[1].rect,
+            TileRect {
+                x0: 32,
+                y0: 0,
+                width: 8,
+                height: 24
+            }
+        );
+        // Render: 7 samples split by 3 → 3 ranges per tile.
+        assert_eq!(plan[2].tasks.len(), 3 * 2 * 3);
+        assert_eq!(
+            (plan[2].tasks[2].sample_start, plan[2].tasks[2].sample_end),
+            (23, 24)
+        );
+        let total: usize = plan.iter().map(|p| p.tasks.len()).sum();
+        assert_eq!(total as u64, plan_task_count(&r, &s.estimator));
+        // Every pixel gets every sample index exactly once over the phases.
+        let mut hits = vec![0u32; 40 * 24];
+        for p in &plan {
+            for (i, t) in p.tasks.iter().enumerate() {
+                assert_eq!(t.seq as usize, i);
+                for y in t.rect.y0..t.rect.y0 + t.rect.height {
+                    for x in t.rect.x0..t.rect.x0 + t.rect.width {
+                        hits[(y * 40 + x) as usize] += t.sample_end - t.sample_start;
+                    }
+                }
+            }
+        }
+        assert!(hits.iter().all(|&h| h == 24));
+        // Without `relative` there is no surrogate; path has one render phase.
+        let s = spec(serde_json::json!({"estimator": {"kind": "cms", "relative": false}})).unwrap();
+        let r = s.resolve(&scene(), &Limits::default()).unwrap();
+        let kinds: Vec<_> = plan_phases(&r, &s.estimator)
+            .iter()
+            .map(|p| p.kind)
+            .collect();
+        assert_eq!(kinds, [PhaseKind::Train]);
+        let s = spec(serde_json::json!({})).unwrap();
+        let r = s.resolve(&scene(), &Limits::default()).unwrap();
+        let plan = plan_phases(&r, &s.estimator);
+        assert_eq!(plan.len(), 1);
+        assert_eq!(plan[0].tasks, plan_tasks(&r));
     }
 
     #[test]

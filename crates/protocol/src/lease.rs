@@ -12,9 +12,14 @@
 //!   "scene_hash": "…64 hex…", "assets": {"meshes/bunny.obj": "…64 hex…"},
 //!   "job": { "width": 64, "height": 64, "spp": 16, "seed": 0, "max_depth": 5, "rr_depth": 5,
 //!            "hide_emitters": false, "tile_size": 32, "samples_per_task": 16 },
-//!   "estimator": {"kind": "path"}, "coefficients": null,
+//!   "estimator": {"kind": "path"}, "surrogate": null, "coefficients": null,
 //!   "lease_ms": 30000, "heartbeat_ms": 10000 }
 //! ```
+//!
+//! Leases of a CV job's `train` phase carry the content address of the surrogate image
+//! (`surrogate`, relative-variance `cms` only), those of its `render` phase the address of
+//! the solved coefficient table (`coefficients`); workers fetch both with
+//! `GET /v1/assets/{hash}`, check the SHA-256 and cache them.
 
 use std::collections::BTreeMap;
 
@@ -50,7 +55,7 @@ pub struct LeaseRequest {
     pub wait_ms: u64,
 }
 
-/// The phase a task belongs to (DESIGN §1). Only `render` exists so far.
+/// The phase a task belongs to (DESIGN §1).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum PhaseKind {
@@ -110,7 +115,12 @@ pub struct TaskLease {
     pub job: ResolvedJob,
     /// Estimator and its options.
     pub estimator: EstimatorSpec,
-    /// Content address of the coefficient table for this phase, if it has one.
+    /// Content address of the surrogate image the `train` phase weights its samples with
+    /// ([`estimators::surrogate::encode_surrogate`]), if the phase has one.
+    #[serde(default)]
+    pub surrogate: Option<String>,
+    /// Content address of the coefficient table the `render` phase applies
+    /// (`estimators::table` encoding, kind `KIND_COEFFICIENTS`), if the phase has one.
     #[serde(default)]
     pub coefficients: Option<String>,
     /// Lease duration from now, in milliseconds.
@@ -237,8 +247,8 @@ pub struct JobStats {
     pub effects: Vec<String>,
 }
 
-/// Time spent in one phase.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+/// Time spent in one phase, and what its barrier computed.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct PhaseStats {
     /// Phase name.
@@ -247,6 +257,35 @@ pub struct PhaseStats {
     pub seconds: f64,
     /// Tasks in the phase.
     pub tasks: u64,
+    /// Samples per pixel rendered in the phase.
+    #[serde(default)]
+    pub spp: u32,
+    /// What the barrier after this phase computed (surrogate, or merge + solve), if any.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub barrier: Option<BarrierStats>,
+}
+
+/// What the coordinator computed at a phase barrier: the surrogate image after `surrogate`,
+/// the merged and solved cell table after `train`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BarrierStats {
+    /// Seconds spent (decode, merge, solve or denoise, encode).
+    pub seconds: f64,
+    /// Content address of the stored blob (surrogate image or coefficient table).
+    pub blob: String,
+    /// Cells that received training data (train barrier).
+    #[serde(default)]
+    pub cells: u64,
+    /// Cells whose system was solved.
+    #[serde(default)]
+    pub cells_solved: u64,
+    /// Cells that fell back to the plain estimator, by reason.
+    #[serde(default)]
+    pub cells_fallback: BTreeMap<String, u64>,
+    /// Training samples rejected as non-finite.
+    #[serde(default)]
+    pub rejected_samples: u64,
 }
 
 #[cfg(test)]
@@ -282,6 +321,7 @@ mod tests {
                 samples_per_task: 4,
             },
             estimator: EstimatorSpec::default(),
+            surrogate: None,
             coefficients: None,
             lease_ms: 1000,
             heartbeat_ms: 300,

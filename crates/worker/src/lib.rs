@@ -8,6 +8,9 @@
 //!    back-off (100 ms doubling up to `max_backoff_ms`); a 401 re-registers.
 //! 3. **Prepare** the job once: scene document and assets are fetched by content address,
 //!    verified against their SHA-256 and cached in memory; the `RenderScene` is cached per job.
+//!    A CV phase's input — the surrogate image (`train`) or the coefficient table (`render`),
+//!    named by content address in the lease — is fetched the same way, verified, decoded
+//!    and checked against the job once, and cached with the prepared job.
 //! 4. **Render** on a blocking thread while a heartbeat task extends the lease every
 //!    `heartbeat_ms` (from the moment the lease arrives). Each slot renders one task at a
 //!    time and keeps one more lease in hand, fetched and prepared while the current one
@@ -39,7 +42,7 @@ use protocol::lease::{LeaseRequest, RegisterRequest, RegisterResponse, TaskLease
 use reqwest::StatusCode;
 use tokio::sync::{Mutex, Semaphore, watch};
 
-use crate::tile::{Prepared, TaskError};
+use crate::tile::{PhaseInputs, Prepared, TaskError};
 
 /// Worker settings (every one has a CLI flag and environment variable in `cvfarm worker`).
 ///
@@ -391,6 +394,31 @@ impl Inner {
         Ok(p)
     }
 
+    /// The phase inputs named by the lease, fetched by content address (verified) and
+    /// decoded once per job.
+    async fn phase_inputs(&self, l: &TaskLease, p: &Arc<Prepared>) -> Result<PhaseInputs, String> {
+        let mut inputs = PhaseInputs::default();
+        if let Some(hash) = &l.surrogate {
+            let bytes = self.blob(hash).await?;
+            let (p, hash) = (p.clone(), hash.clone());
+            let s = tokio::task::spawn_blocking(move || p.surrogate(&hash, &bytes))
+                .await
+                .map_err(|e| e.to_string())?
+                .map_err(|e| e.to_string())?;
+            inputs.surrogate = Some(s);
+        }
+        if let Some(hash) = &l.coefficients {
+            let bytes = self.blob(hash).await?;
+            let (p, hash) = (p.clone(), hash.clone());
+            let t = tokio::task::spawn_blocking(move || p.coefficients(&hash, &bytes))
+                .await
+                .map_err(|e| e.to_string())?
+                .map_err(|e| e.to_string())?;
+            inputs.coefficients = Some(t);
+        }
+        Ok(inputs)
+    }
+
     /// Heartbeats (from receipt), prepares, waits for the slot's render permit, renders,
     /// frees the permit, uploads. Signals `started` once it holds the permit (or gives up).
     #[tracing::instrument(skip_all, fields(task = l.task_id, attempt = l.attempt))]
@@ -404,6 +432,10 @@ impl Inner {
         let _heartbeat = self.heartbeat(&l, lost.clone()).await;
         let prepared = match self.prepare(&l).await {
             Ok(p) => p,
+            Err(e) => return self.fail(&l, &e).await,
+        };
+        let inputs = match self.phase_inputs(&l, &prepared).await {
+            Ok(i) => i,
             Err(e) => return self.fail(&l, &e).await,
         };
         let Ok(render_permit) = permit.acquire_owned().await else {
@@ -426,7 +458,9 @@ impl Inner {
             sample_start: l.sample_start,
             sample_end: l.sample_end,
         };
-        let rendered = tokio::task::spawn_blocking(move || prepared.render_task(header)).await;
+        let phase = l.phase;
+        let rendered =
+            tokio::task::spawn_blocking(move || prepared.render_task(header, phase, &inputs)).await;
         drop(render_permit);
         let result = match rendered {
             Ok(Ok(r)) => r,

@@ -2,19 +2,36 @@
 //!
 //! [`Prepared`] is a loaded scene with the job's overrides applied (resolution, path lengths)
 //! and the [`render::integrator::RenderScene`] built once per job; [`Prepared::render_task`]
-//! renders one `(tile, sample range)` with [`render::tile::render_tile`] and packs the f64
-//! film into a [`protocol::TileResult`]. [`render_local`] runs a whole job's task plan
-//! in-process and assembles it exactly as the coordinator does, which is what the farm's
+//! renders one `(tile, sample range)` of one phase and packs the f64 film (and, for a
+//! `train` task, the tile's cell accumulator table) into a [`protocol::TileResult`]:
+//!
+//! | estimator | phase | renderer call |
+//! |---|---|---|
+//! | `path`, `ocv` | render | [`render::tile::render_tile`] |
+//! | `cms` (relative) | surrogate | [`CvJob::surrogate_tile`] |
+//! | `cms`, `per_light_cv`, `optimal_mis` | train | [`CvJob::train_tile`] with the surrogate image; one cell block |
+//! | `cms`, `per_light_cv`, `optimal_mis` | render | [`CvJob::render_tile`] with the solved coefficient table |
+//!
+//! [`render_local`] runs a whole job's phase plan ([`protocol::job::plan_phases`])
+//! in-process and performs the barriers with the coordinator's own functions
+//! ([`protocol::cv`]), the blobs going through their wire encodings; that is what the farm's
 //! output is compared with (same spec + seed ⇒ same bits).
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
+use std::sync::{Arc, Mutex};
 
+use estimators::solve::CellCoefficients;
+use estimators::table::decode_table;
 use protocol::TileResult;
 use protocol::assemble::{AssembledImage, ImageAccumulator};
-use protocol::frame::{PixelRecord, TileHeader};
+use protocol::cv;
+use protocol::frame::{CellBlock, PixelRecord, TileHeader};
 use protocol::job::{
-    EstimatorSpec, LightSelection, MisHeuristic, ResolvedJob, TileRect, plan_tasks,
+    EstimatorSpec, LightSelection, MisHeuristic, ResolvedJob, TileRect, plan_phases,
 };
+use protocol::lease::PhaseKind;
+use render::film::Film;
+use render::integrator::cv::{CoefficientTable, CvJob};
 use render::integrator::{Estimator, RenderScene, RenderSettings};
 
 /// Why a task could not be rendered.
@@ -29,6 +46,23 @@ pub enum TaskError {
     /// The renderer refused.
     #[error("render: {0}")]
     Render(#[from] render::integrator::RenderError),
+    /// A phase input (surrogate image, coefficient table) is missing or invalid, or the
+    /// phase does not exist for the estimator.
+    #[error("phase input: {0}")]
+    Input(String),
+    /// An in-process barrier failed (see [`protocol::cv::CvError`]).
+    #[error("barrier: {0}")]
+    Barrier(#[from] protocol::cv::CvError),
+}
+
+/// What a task of a CV phase needs besides its tile: the surrogate image (train phase of
+/// relative `cms`) and the coefficient table (render phase).
+#[derive(Clone, Debug, Default)]
+pub struct PhaseInputs {
+    /// Per-pixel surrogate, `width × height`.
+    pub surrogate: Option<Arc<Vec<f64>>>,
+    /// Solved coefficients, checked against the job's layout.
+    pub coefficients: Option<Arc<CoefficientTable>>,
 }
 
 /// A job's scene, prepared for rendering its tasks.
@@ -38,6 +72,74 @@ pub struct Prepared {
     pub scene: RenderScene,
     /// The job's settings.
     pub settings: RenderSettings,
+    /// The job's estimator, as on the wire.
+    pub estimator: EstimatorSpec,
+    /// Decoded phase inputs by content address (a job's blobs never change).
+    inputs: Mutex<HashMap<String, Input>>,
+}
+
+#[derive(Clone, Debug)]
+enum Input {
+    Surrogate(Arc<Vec<f64>>),
+    Coefficients(Arc<CoefficientTable>),
+}
+
+/// The renderer's estimator and MIS settings for a wire estimator.
+pub fn render_estimator(
+    estimator: &EstimatorSpec,
+) -> Result<
+    (
+        Estimator,
+        render::integrator::MisHeuristic,
+        render::light::LightSelection,
+    ),
+    TaskError,
+> {
+    let (mis, sel) = match estimator {
+        EstimatorSpec::Path(o) => (o.mis, o.light_selection),
+        _ => (MisHeuristic::Power, LightSelection::Uniform),
+    };
+    let est = match estimator {
+        EstimatorSpec::Path(_) => Estimator::Path,
+        EstimatorSpec::Ocv(o) => Estimator::Ocv(*o),
+        EstimatorSpec::Cms(o) => Estimator::Cms(*o),
+        EstimatorSpec::PerLightCv(o) => Estimator::PerLightCv(*o),
+        EstimatorSpec::OptimalMis(o) => Estimator::OptimalMis(*o),
+        EstimatorSpec::Rerender(_) | EstimatorSpec::Gradient(_) => {
+            return Err(TaskError::Unsupported(estimator.name()));
+        }
+    };
+    let mis = match mis {
+        MisHeuristic::Power => render::integrator::MisHeuristic::Power,
+        MisHeuristic::Balance => render::integrator::MisHeuristic::Balance,
+    };
+    let sel = match sel {
+        LightSelection::Uniform => render::light::LightSelection::Uniform,
+        LightSelection::Power => render::light::LightSelection::Power,
+    };
+    Ok((est, mis, sel))
+}
+
+fn rtile(r: TileRect) -> render::tile::TileRect {
+    render::tile::TileRect {
+        x0: r.x0,
+        y0: r.y0,
+        width: r.width,
+        height: r.height,
+    }
+}
+
+fn pixels_of(film: &Film) -> Vec<PixelRecord> {
+    film.pixels
+        .iter()
+        .map(|p| PixelRecord {
+            sum: p.sum,
+            sum_sq: p.sum_sq,
+            albedo: p.albedo_sum,
+            normal: p.normal_sum,
+            count: p.count,
+        })
+        .collect()
 }
 
 impl Prepared {
@@ -49,9 +151,7 @@ impl Prepared {
         job: &ResolvedJob,
         estimator: &EstimatorSpec,
     ) -> Result<Self, TaskError> {
-        let EstimatorSpec::Path(opts) = estimator else {
-            return Err(TaskError::Unsupported(estimator.name()));
-        };
+        let (est, mis, light_selection) = render_estimator(estimator)?;
         let desc: scene::SceneDesc =
             serde_json::from_slice(scene_json).map_err(|e| TaskError::Scene(e.to_string()))?;
         let mut mem = scene::MemoryAssets::new();
@@ -68,70 +168,171 @@ impl Prepared {
             max_depth: job.max_depth,
             rr_depth: job.rr_depth,
             hide_emitters: job.hide_emitters,
-            mis: match opts.mis {
-                MisHeuristic::Power => render::integrator::MisHeuristic::Power,
-                MisHeuristic::Balance => render::integrator::MisHeuristic::Balance,
-            },
-            light_selection: match opts.light_selection {
-                LightSelection::Uniform => render::light::LightSelection::Uniform,
-                LightSelection::Power => render::light::LightSelection::Power,
-            },
-            estimator: Estimator::Path,
+            mis,
+            light_selection,
+            estimator: est,
         };
         let scene = RenderScene::new(&loaded.scene, &settings)?;
-        Ok(Self { scene, settings })
+        let p = Self {
+            scene,
+            settings,
+            estimator: estimator.clone(),
+            inputs: Mutex::new(HashMap::new()),
+        };
+        // Fail early (before any task) when the CV setup is invalid for this scene.
+        p.cv_job()?;
+        Ok(p)
     }
 
-    /// Renders samples `sample_start..sample_end` of `rect` into a tile result.
-    pub fn render_task(&self, header: TileHeader) -> Result<TileResult, TaskError> {
-        let r = header.rect;
-        let tile = render::tile::TileRect {
-            x0: r.x0,
-            y0: r.y0,
-            width: r.width,
-            height: r.height,
+    /// The CV phase API of the job (`None` for `path` and `ocv`).
+    fn cv_job(&self) -> Result<Option<CvJob<'_>>, TaskError> {
+        Ok(CvJob::new(&self.scene, &self.settings)?)
+    }
+
+    fn cached(&self, hash: &str) -> Option<Input> {
+        self.inputs.lock().ok()?.get(hash).cloned()
+    }
+
+    fn cache(&self, hash: &str, input: Input) {
+        if let Ok(mut m) = self.inputs.lock() {
+            m.insert(hash.to_owned(), input);
+        }
+    }
+
+    /// Decodes (once per address) the surrogate image blob `bytes` with content address
+    /// `hash`, checking its size against the film.
+    pub fn surrogate(&self, hash: &str, bytes: &[u8]) -> Result<Arc<Vec<f64>>, TaskError> {
+        if let Some(Input::Surrogate(s)) = self.cached(hash) {
+            return Ok(s);
+        }
+        let (values, w, h) = estimators::surrogate::decode_surrogate(bytes)
+            .map_err(|e| TaskError::Input(e.to_string()))?;
+        if (w, h) != (self.scene.width, self.scene.height) {
+            return Err(TaskError::Input(format!(
+                "surrogate image is {w}x{h}, the film {}x{}",
+                self.scene.width, self.scene.height
+            )));
+        }
+        let s = Arc::new(values);
+        self.cache(hash, Input::Surrogate(s.clone()));
+        Ok(s)
+    }
+
+    /// Decodes (once per address) the coefficient table blob `bytes` with content address
+    /// `hash`, checking every key and the layout against the job.
+    pub fn coefficients(
+        &self,
+        hash: &str,
+        bytes: &[u8],
+    ) -> Result<Arc<CoefficientTable>, TaskError> {
+        if let Some(Input::Coefficients(t)) = self.cached(hash) {
+            return Ok(t);
+        }
+        let job = self.cv_job()?.ok_or_else(|| {
+            TaskError::Input("coefficients for an estimator without phases".into())
+        })?;
+        let map: BTreeMap<u64, CellCoefficients> =
+            decode_table(bytes).map_err(|e| TaskError::Input(format!("coefficients: {e}")))?;
+        let t = Arc::new(job.coefficient_table(&map)?);
+        self.cache(hash, Input::Coefficients(t.clone()));
+        Ok(t)
+    }
+
+    /// Renders samples `sample_start..sample_end` of `rect` in `phase` into a tile result.
+    pub fn render_task(
+        &self,
+        header: TileHeader,
+        phase: PhaseKind,
+        inputs: &PhaseInputs,
+    ) -> Result<TileResult, TaskError> {
+        let tile = rtile(header.rect);
+        let samples = header.sample_start..header.sample_end;
+        let job = self.cv_job()?;
+        let (film, cells) = match (&job, phase) {
+            (None, PhaseKind::Render) => (
+                render::tile::render_tile(&self.scene, &self.settings, tile, samples)?,
+                Vec::new(),
+            ),
+            (None, _) => {
+                return Err(TaskError::Input(format!(
+                    "estimator `{}` has no {} phase",
+                    self.estimator.name(),
+                    phase.as_str()
+                )));
+            }
+            (Some(j), PhaseKind::Surrogate) => (j.surrogate_tile(tile, samples).film, Vec::new()),
+            (Some(j), PhaseKind::Train) => {
+                if j.needs_surrogate() && inputs.surrogate.is_none() {
+                    return Err(TaskError::Input("the train phase needs a surrogate".into()));
+                }
+                let t = j.train_tile(
+                    tile,
+                    samples,
+                    inputs.surrogate.as_deref().map(Vec::as_slice),
+                )?;
+                let block = CellBlock {
+                    kind: t.cells.kind(),
+                    data: t.cells.encode(),
+                };
+                (t.out.film, vec![block])
+            }
+            (Some(j), PhaseKind::Render) => {
+                let table = inputs.coefficients.as_deref().ok_or_else(|| {
+                    TaskError::Input("the render phase needs a coefficient table".into())
+                })?;
+                (j.render_tile(tile, samples, table).out.film, Vec::new())
+            }
         };
-        let film = render::tile::render_tile(
-            &self.scene,
-            &self.settings,
-            tile,
-            header.sample_start..header.sample_end,
-        )?;
-        let pixels = film
-            .pixels
-            .iter()
-            .map(|p| PixelRecord {
-                sum: p.sum,
-                sum_sq: p.sum_sq,
-                albedo: p.albedo_sum,
-                normal: p.normal_sum,
-                count: p.count,
-            })
-            .collect();
         Ok(TileResult {
             header,
-            pixels,
-            cells: Vec::new(),
+            pixels: pixels_of(&film),
+            cells,
         })
     }
 }
 
-/// Renders every task of a job in-process, in canonical order, and assembles the image the
-/// way the coordinator does.
+/// Renders every task of a job's phase plan in-process, in canonical order, performs the
+/// barriers the way the coordinator does (surrogate image, merge in task order, solve, each
+/// blob through its wire encoding) and assembles all phases' pixels in (phase, task) order.
 pub fn render_local(prepared: &Prepared, job: &ResolvedJob) -> Result<AssembledImage, TaskError> {
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     let mut acc = ImageAccumulator::new(job.width, job.height);
-    for t in plan_tasks(job) {
-        let header = TileHeader {
-            job_id: 0,
-            task_id: i64::from(t.seq),
-            attempt: 1,
-            rect: TileRect { ..t.rect },
-            sample_start: t.sample_start,
-            sample_end: t.sample_end,
-        };
-        let tile = prepared.render_task(header)?;
-        acc.add(&tile)
-            .map_err(|e| TaskError::Scene(e.to_string()))?;
+    let mut inputs = PhaseInputs::default();
+    for phase in plan_phases(job, &prepared.estimator) {
+        let mut results = Vec::with_capacity(phase.tasks.len());
+        for t in &phase.tasks {
+            let header = TileHeader {
+                job_id: 0,
+                task_id: i64::from(t.seq),
+                attempt: 1,
+                rect: t.rect,
+                sample_start: t.sample_start,
+                sample_end: t.sample_end,
+            };
+            results.push(prepared.render_task(header, phase.kind, &inputs)?);
+        }
+        let phased = prepared.estimator.phased();
+        match (phase.kind, phased) {
+            (PhaseKind::Surrogate, Some(_)) => {
+                let blob = cv::surrogate_blob(job, &results)?;
+                let hash = protocol::hash::sha256_hex(&blob);
+                inputs.surrogate = Some(prepared.surrogate(&hash, &blob)?);
+            }
+            (PhaseKind::Train, Some(p)) => {
+                let tables = results
+                    .iter()
+                    .map(|r| cv::check_train_block(&p, job, r))
+                    .collect::<Result<Vec<_>, _>>()?;
+                let merged = cv::merge_train(cv::table_kind(&p), tables)?;
+                let blob = merged.solve(&p.solve_policy(), threads).encode();
+                let hash = protocol::hash::sha256_hex(&blob);
+                inputs.coefficients = Some(prepared.coefficients(&hash, &blob)?);
+            }
+            _ => {}
+        }
+        for r in &results {
+            acc.add(r).map_err(cv::CvError::from)?;
+        }
     }
     Ok(acc.finish())
 }
@@ -185,7 +386,9 @@ mod tests {
             sample_start: 1,
             sample_end: 4,
         };
-        let r = p.render_task(header).unwrap();
+        let r = p
+            .render_task(header, PhaseKind::Render, &PhaseInputs::default())
+            .unwrap();
         assert_eq!(r.pixels.len(), 32);
         assert!(r.pixels.iter().all(|px| px.count == 3));
         // The encoded result passes the coordinator's validation.
@@ -214,12 +417,69 @@ mod tests {
         }
     }
 
+    /// The farm's plan with the coordinator's barriers gives the bits of `cvfarm render`
+    /// (`render_estimator_image`) for a CV job with the default `samples_per_task`.
+    fn local_equals_in_process_driver(est: EstimatorSpec, seed: u64) {
+        let j = ResolvedJob {
+            width: 48,
+            height: 32,
+            spp: 24,
+            seed,
+            max_depth: 5,
+            rr_depth: 5,
+            hide_emitters: false,
+            tile_size: 16,
+            samples_per_task: 24,
+        };
+        let p = Prepared::new(&cornell(), BTreeMap::new(), &j, &est).unwrap();
+        let farm = render_local(&p, &j).unwrap();
+        let opts = render::tile::RenderOptions {
+            tile_size: 16,
+            threads: 2,
+        };
+        let (film, _, report) = render::integrator::cv::render_estimator_image(
+            &p.scene,
+            &p.settings,
+            &opts,
+            &|_, _| {},
+        )
+        .unwrap();
+        assert!(report.cells > 0, "{report:?}");
+        let layers = film.layers();
+        let flat = |i: usize| -> Vec<u32> {
+            layers[i]
+                .data
+                .iter()
+                .flatten()
+                .map(|v| v.to_bits())
+                .collect()
+        };
+        let bits = |v: &[f32]| -> Vec<u32> { v.iter().map(|x| x.to_bits()).collect() };
+        assert_eq!(layers[0].name, "beauty");
+        assert!(bits(&farm.beauty) == flat(0), "beauty differs");
+        assert!(bits(&farm.variance) == flat(1), "variance differs");
+        assert!(bits(&farm.albedo) == flat(2), "albedo differs");
+        assert!(bits(&farm.normal) == flat(3), "normal differs");
+        assert!(farm.spp.iter().all(|&n| n == 24));
+        assert!(farm.beauty.iter().any(|&v| v > 0.0));
+    }
+
+    #[test]
+    fn cms_render_local_equals_render_estimator_image_bitwise() {
+        local_equals_in_process_driver(EstimatorSpec::Cms(Default::default()), 9);
+    }
+
+    #[test]
+    fn per_light_cv_render_local_equals_render_estimator_image_bitwise() {
+        local_equals_in_process_driver(EstimatorSpec::PerLightCv(Default::default()), 4);
+    }
+
     #[test]
     fn unsupported_estimator_and_bad_scene_are_errors() {
-        let cms = EstimatorSpec::Cms(Default::default());
+        let g = EstimatorSpec::Gradient(Default::default());
         assert!(matches!(
-            Prepared::new(&cornell(), BTreeMap::new(), &job(1, 1), &cms),
-            Err(TaskError::Unsupported("cms"))
+            Prepared::new(&cornell(), BTreeMap::new(), &job(1, 1), &g),
+            Err(TaskError::Unsupported("gradient"))
         ));
         assert!(matches!(
             Prepared::new(

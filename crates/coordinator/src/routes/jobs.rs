@@ -3,8 +3,11 @@
 //! Submission validates everything before anything is stored: JSON shape (unknown fields
 //! rejected), the estimator (known but unimplemented kinds → 422 `unsupported`), limits
 //! (resolution, spp, tile size, task count), the scene (parsed, every asset it names mapped
-//! to an uploaded blob, then loaded by `scene::load` over those blobs). The job, its phase
-//! and all its tasks are then created in one transaction.
+//! to an uploaded blob, then loaded by `scene::load` over those blobs). The job, its phases
+//! ([`protocol::job::plan_phases`]) and all their tasks are then created in one transaction.
+//!
+//! `GET /v1/jobs/{id}/coefficients` returns the solved coefficient table of a CV job (the
+//! `estimators::table` encoding) as soon as its train barrier has passed; 404 before.
 
 use std::collections::BTreeMap;
 use std::sync::Arc;
@@ -17,7 +20,7 @@ use axum::response::IntoResponse;
 use axum::routing::{get, post};
 use axum::{Json, Router};
 use protocol::hash::{is_content_address, sha256_hex};
-use protocol::job::{SceneSource, plan_tasks};
+use protocol::job::{SceneSource, plan_phases};
 use protocol::lease::{JobState, JobStatus, PhaseKind, SubmitResponse};
 use protocol::{ApiError, JobSpec};
 use scene::SceneDesc;
@@ -139,7 +142,8 @@ async fn submit(
     stored.scene = SceneSource::Bundle(scene_hash.clone());
     let stored_json =
         serde_json::to_string(&stored).map_err(|e| AppError::Internal(e.to_string()))?;
-    let plan = plan_tasks(&resolved);
+    let plan = plan_phases(&resolved, &spec.estimator);
+    let first_tasks = plan.first().map_or(0, |p| p.tasks.len());
     let job_id = st
         .store
         .create_job(&NewJob {
@@ -149,16 +153,21 @@ async fn submit(
             estimator: spec.estimator.name(),
             effects: &effects,
             priority: i64::from(spec.priority),
-            plan: &plan,
+            phases: &plan,
         })
         .await?;
-    tracing::info!(job = job_id, tasks = plan.len(), "job submitted");
+    tracing::info!(
+        job = job_id,
+        phases = plan.len(),
+        tasks = first_tasks,
+        "job submitted"
+    );
     st.work_available.notify_waiters();
     Ok((
         StatusCode::CREATED,
         Json(SubmitResponse {
             job_id,
-            tasks: plan.len() as u64,
+            tasks: first_tasks as u64,
         }),
     ))
 }
@@ -223,11 +232,15 @@ pub fn effects(f: &scene::Features, max_depth: i32) -> Vec<String> {
     out
 }
 
-fn job_status(job: &JobRow, progress: crate::store::Progress) -> AppResult<JobStatus> {
+fn job_status(
+    job: &JobRow,
+    phase: PhaseKind,
+    progress: crate::store::Progress,
+) -> AppResult<JobStatus> {
     Ok(JobStatus {
         job_id: job.id,
         state: job.state,
-        phase: PhaseKind::Render,
+        phase,
         estimator: job.estimator.clone(),
         priority: job.priority as i32,
         tasks_total: progress.total.max(0) as u64,
@@ -256,7 +269,12 @@ async fn reload(st: &AppState, id: i64) -> AppResult<JobRow> {
 /// The API status of a job row, with its current phase's progress.
 async fn status_of(st: &AppState, job: JobRow) -> AppResult<JobStatus> {
     let progress = st.store.progress(job.id, job.phase_idx).await?;
-    job_status(&job, progress)
+    let phase = st
+        .store
+        .phase(job.id, job.phase_idx)
+        .await?
+        .map_or(PhaseKind::Render, |p| p.kind);
+    job_status(&job, phase, progress)
 }
 
 async fn status(
@@ -342,12 +360,15 @@ async fn output(
     State(st): State<Arc<AppState>>,
     headers: HeaderMap,
     path: Result<Path<(i64, String)>, PathRejection>,
-) -> AppResult<impl IntoResponse> {
+) -> AppResult<axum::response::Response> {
     require_token(&headers, &st.config.client_tokens)?;
     let Path((id, name)) = path?;
+    if name == "coefficients" {
+        return coefficients(&st, id).await;
+    }
     if !OUTPUTS.iter().any(|(n, _)| *n == name) {
         return Err(AppError::NotFound(format!(
-            "output `{name}` (available: image.exr, preview.png, stats.json)"
+            "output `{name}` (available: image.exr, preview.png, stats.json, coefficients)"
         )));
     }
     let job = st
@@ -379,5 +400,30 @@ async fn output(
         .artifact(id, &name)
         .await?
         .ok_or_else(|| AppError::NotFound(format!("output {name} of job {id}")))?;
-    Ok(([(header::CONTENT_TYPE, ctype)], data))
+    Ok(([(header::CONTENT_TYPE, ctype)], data).into_response())
+}
+
+/// The solved coefficient table of a job (404 until its train barrier has passed).
+async fn coefficients(st: &AppState, id: i64) -> AppResult<axum::response::Response> {
+    if st.store.job(id).await?.is_none() {
+        return Err(AppError::NotFound(format!("job {id}")));
+    }
+    let hash = st.store.coefficients_of(id).await?.ok_or_else(|| {
+        AppError::NotFound(format!(
+            "coefficients of job {id} (not solved yet, or its estimator has none)"
+        ))
+    })?;
+    let data = st
+        .store
+        .get_blob(&hash)
+        .await?
+        .ok_or_else(|| AppError::Internal(format!("coefficient table {hash} is missing")))?;
+    Ok((
+        [
+            (header::CONTENT_TYPE, "application/octet-stream".to_owned()),
+            (header::ETAG, format!("\"{hash}\"")),
+        ],
+        data,
+    )
+        .into_response())
 }

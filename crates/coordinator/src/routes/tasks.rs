@@ -5,7 +5,13 @@
 //!
 //! Uploads are validated completely before anything is stored: the frame stream must decode
 //! ([`protocol::frame::decode`]: sizes, order, truncation, finite values), and its header must
-//! match the task (job, task, attempt, rectangle, sample range).
+//! match the task (job, task, attempt, rectangle, sample range). A `train` result must carry
+//! exactly one cell block that decodes, is of the job's kind, has finite values, keys in the
+//! job's range and the layout of the job's earlier train results
+//! ([`protocol::cv::check_train_block`]); otherwise 422 `invalid_cells` naming the problem,
+//! and the task stays leased (the worker may fail it, or the lease expires and it is redone).
+//! Other phases carry no cell blocks. The upload that completes a phase triggers the phase
+//! barrier or the job's finish ([`crate::finish::advance_job`]) in the background.
 
 use std::sync::Arc;
 
@@ -15,8 +21,8 @@ use axum::extract::{DefaultBodyLimit, Path, Query, State};
 use axum::http::HeaderMap;
 use axum::routing::{post, put};
 use axum::{Json, Router};
-use protocol::lease::{HeartbeatResponse, JobState, UploadResponse};
-use protocol::{ApiError, frame};
+use protocol::lease::{HeartbeatResponse, JobState, PhaseKind, UploadResponse};
+use protocol::{ApiError, JobSpec, cv, frame};
 use serde::Deserialize;
 
 use crate::AppState;
@@ -128,18 +134,18 @@ async fn upload(
     if (h.sample_start, h.sample_end) != (task.sample_start, task.sample_end) {
         return Err(mismatch("sample range"));
     }
-    if !decoded.cells.is_empty() {
-        return Err(AppError::BadRequest(ApiError::new(
-            "invalid_frame",
-            "cell accumulator records are not expected for this task's estimator",
-        )));
-    }
+    let layout = check_cells(&st, &task, &decoded).await?;
     match st
         .store
         .store_result(task.id, attempt, worker, &body)
         .await?
     {
         UploadOutcome::Accepted => {
+            if let Some(layout) = layout {
+                st.store
+                    .set_phase_layout(task.job_id, task.phase_idx, &layout)
+                    .await?;
+            }
             let progress = st.store.progress(task.job_id, task.phase_idx).await?;
             if progress.done == progress.total {
                 // Finish in the background: the upload is already durable, and should the
@@ -168,6 +174,64 @@ async fn upload(
             Err(stale(task.id, attempt))
         }
     }
+}
+
+fn invalid_cells(message: impl Into<String>) -> AppError {
+    AppError::unprocessable("invalid_cells", message, None)
+}
+
+/// Checks the cell blocks of an upload against its phase and the job's estimator; returns
+/// the layout signature of a train block (to record on the phase when it is the first).
+async fn check_cells(
+    st: &AppState,
+    task: &TaskRow,
+    decoded: &protocol::TileResult,
+) -> AppResult<Option<String>> {
+    let phase = st
+        .store
+        .phase(task.job_id, task.phase_idx)
+        .await?
+        .ok_or_else(|| AppError::Internal(format!("task {} has no phase row", task.id)))?;
+    if phase.kind != PhaseKind::Train {
+        if !decoded.cells.is_empty() {
+            return Err(AppError::BadRequest(ApiError::new(
+                "invalid_frame",
+                format!(
+                    "cell accumulator records are not expected in a {} result",
+                    phase.kind.as_str()
+                ),
+            )));
+        }
+        return Ok(None);
+    }
+    let job = st
+        .store
+        .job_spec(task.job_id)
+        .await?
+        .ok_or_else(|| AppError::NotFound(format!("job {}", task.job_id)))?;
+    let spec: JobSpec = serde_json::from_str(&job.spec)
+        .map_err(|e| AppError::Internal(format!("stored spec: {e}")))?;
+    let Some(est) = spec.estimator.phased() else {
+        return Err(AppError::Internal(format!(
+            "job {} has a train phase but estimator `{}` has none",
+            job.id, job.estimator
+        )));
+    };
+    let table = cv::check_train_block(&est, &job.resolved, decoded)
+        .map_err(|e| invalid_cells(e.to_string()))?;
+    let sig = cv::layout_signature(&table).map_err(|e| invalid_cells(e.to_string()))?;
+    if let (Some(sig), Some(known)) = (&sig, &phase.layout)
+        && sig != known
+    {
+        return Err(invalid_cells(
+            cv::CvError::Layout {
+                found: sig.clone(),
+                expected: format!("{known} (of the job's earlier train results)"),
+            }
+            .to_string(),
+        ));
+    }
+    Ok(sig)
 }
 
 #[tracing::instrument(skip_all)]

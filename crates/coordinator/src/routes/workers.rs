@@ -17,7 +17,7 @@ use axum::routing::post;
 use axum::{Json, Router};
 use protocol::JobSpec;
 use protocol::hash::sha256_hex;
-use protocol::lease::{LeaseRequest, PhaseKind, RegisterRequest, RegisterResponse, TaskLease};
+use protocol::lease::{LeaseRequest, RegisterRequest, RegisterResponse, TaskLease};
 
 use super::parse_json;
 use crate::AppState;
@@ -120,11 +120,20 @@ async fn build_lease(st: &AppState, t: LeasedTask) -> AppResult<TaskLease> {
         .ok_or_else(|| AppError::Internal(format!("job {} vanished", t.job_id)))?;
     let spec: JobSpec = serde_json::from_str(&job.spec)
         .map_err(|e| AppError::Internal(format!("stored spec: {e}")))?;
+    // The phase row carries the addresses of the phase's inputs, written by the barrier
+    // before the job entered the phase.
+    let phase = st
+        .store
+        .phase(t.job_id, t.phase_idx)
+        .await?
+        .ok_or_else(|| {
+            AppError::Internal(format!("job {} has no phase {}", t.job_id, t.phase_idx))
+        })?;
     Ok(TaskLease {
         task_id: t.id,
         attempt: u32::try_from(t.attempt).unwrap_or(u32::MAX),
         job_id: t.job_id,
-        phase: PhaseKind::Render,
+        phase: phase.kind,
         rect: t.rect,
         sample_start: t.sample_start,
         sample_end: t.sample_end,
@@ -132,7 +141,8 @@ async fn build_lease(st: &AppState, t: LeasedTask) -> AppResult<TaskLease> {
         assets: spec.assets,
         job: job.resolved,
         estimator: spec.estimator,
-        coefficients: None,
+        surrogate: phase.surrogate,
+        coefficients: phase.coefficients,
         lease_ms: st.config.lease_ms,
         heartbeat_ms: st.config.heartbeat_ms,
     })
