@@ -201,14 +201,30 @@ fn bad_input_is_4xx_json_naming_the_problem() {
         "invalid_spec",
         "magic",
     );
-    s["estimator"] = serde_json::json!({"kind": "cms"});
+    s["estimator"] = serde_json::json!({"kind": "gradient"});
     let e = check(
         client.submit_raw(&serde_json::to_vec(&s).unwrap()),
         422,
         "unsupported",
-        "cms",
+        "gradient",
     );
     assert_eq!(e.field.as_deref(), Some("estimator.kind"));
+    // CV options are typed: a misspelt one is named, a bad value names the option.
+    s["estimator"] = serde_json::json!({"kind": "cms", "trainig_spp": 3});
+    check(
+        client.submit_raw(&serde_json::to_vec(&s).unwrap()),
+        422,
+        "invalid_spec",
+        "trainig_spp",
+    );
+    s["estimator"] = serde_json::json!({"kind": "cms", "grid_resolution": [0, 1, 1]});
+    let e = check(
+        client.submit_raw(&serde_json::to_vec(&s).unwrap()),
+        422,
+        "invalid_spec",
+        "grid_resolution",
+    );
+    assert_eq!(e.field.as_deref(), Some("estimator.grid_resolution"));
     s["estimator"] = serde_json::json!({"kind": "path", "mis": "power", "bogus": 1});
     let e = check(
         client.submit_raw(&serde_json::to_vec(&s).unwrap()),

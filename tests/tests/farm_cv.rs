@@ -1,0 +1,403 @@
+//! CV estimators on the farm (issue #5): a `cms` job rendered by 1 and by 3 workers gives a
+//! bitwise-identical EXR, equal to `cvfarm render`'s in-process driver
+//! (`render_estimator_image`), on SQLite and on PostgreSQL; `per_light_cv` and `optimal_mis`
+//! jobs complete with the in-process bits too; bad training uploads are 4xx JSON and the task
+//! is re-leasable; a coordinator restarted between train and render finishes identically.
+
+use std::collections::BTreeMap;
+use std::time::Duration;
+
+use e2e::{Backend, Client, Coordinator, ENROLL_TOKEN, TestDb, Worker, scene_json};
+use protocol::job::{EstimatorSpec, ResolvedJob};
+use protocol::lease::{JobState, JobStatus, PhaseKind, TaskLease};
+
+fn spec(scene: &serde_json::Value, estimator: serde_json::Value, seed: u64) -> serde_json::Value {
+    serde_json::json!({
+        "scene": { "inline": scene },
+        "estimator": estimator,
+        "resolution": [48, 32],
+        "spp": 24,
+        "tile_size": 16,
+        "seed": seed,
+    })
+}
+
+/// What `cvfarm render --estimator … -o x.exr` writes for the same job: the estimator parsed
+/// from the job's JSON into the renderer's own type, `render_estimator_image`, the film's
+/// layers. (The CLI adds estimator layers; the farm image has the film's four.)
+fn local_cv_exr(
+    scene: &serde_json::Value,
+    estimator: &serde_json::Value,
+    job: &ResolvedJob,
+) -> Vec<u8> {
+    let desc: scene::SceneDesc = serde_json::from_value(scene.clone()).expect("scene desc");
+    let mut loaded = scene::load(&desc, &scene::MemoryAssets::new()).expect("scene loads");
+    loaded.scene.film.width = job.width;
+    loaded.scene.film.height = job.height;
+    let est: render::integrator::Estimator =
+        serde_json::from_value(estimator.clone()).expect("render estimator");
+    let settings = render::integrator::RenderSettings {
+        spp: job.spp,
+        seed: job.seed,
+        max_depth: job.max_depth,
+        rr_depth: job.rr_depth,
+        hide_emitters: job.hide_emitters,
+        estimator: est,
+        ..render::integrator::RenderSettings::from_scene(&loaded.scene)
+    };
+    let rs = render::integrator::RenderScene::new(&loaded.scene, &settings).expect("prepare");
+    let opts = render::tile::RenderOptions {
+        tile_size: 8,
+        threads: 2,
+    };
+    let (film, _, report) =
+        render::integrator::cv::render_estimator_image(&rs, &settings, &opts, &|_, _| {})
+            .expect("render");
+    assert!(report.cells > 0, "{report:?}");
+    let layers: Vec<imageio::RgbLayer> = film
+        .layers()
+        .into_iter()
+        .map(|l| imageio::RgbLayer {
+            name: l.name.to_owned(),
+            data: l.data,
+        })
+        .collect();
+    imageio::encode_exr(job.width, job.height, &layers).expect("exr")
+}
+
+struct Run {
+    exr: Vec<u8>,
+    status: JobStatus,
+    stats: serde_json::Value,
+    coefficients: Vec<u8>,
+}
+
+fn run_job(db: &TestDb, workers: usize, spec: &serde_json::Value) -> Run {
+    let coord = Coordinator::start(db.config());
+    let client = Client::new(&coord.url());
+    let id = client.submit(spec);
+    // Before the train barrier there is no coefficient table.
+    let early = client.request("GET", &format!("/v1/jobs/{id}/coefficients"), None);
+    assert_eq!(
+        early.status,
+        404,
+        "{}",
+        String::from_utf8_lossy(&early.body)
+    );
+    assert_eq!(early.api_error().code, "not_found");
+    let ws: Vec<Worker> = (0..workers)
+        .map(|i| Worker::start(&coord.url(), &format!("w{i}")))
+        .collect();
+    let status = client.wait(id, Duration::from_secs(300));
+    assert_eq!(status.state, JobState::Done, "{status:?}");
+    let run = Run {
+        exr: client.download(id, "image.exr"),
+        stats: serde_json::from_slice(&client.download(id, "stats.json")).expect("stats"),
+        coefficients: client.download(id, "coefficients"),
+        status,
+    };
+    for w in ws {
+        w.stop();
+    }
+    run
+}
+
+/// stats.json of a CV job: every phase with its spp, the train barrier with its cells and
+/// the address of the coefficient table served at `/coefficients`.
+fn check_stats(run: &Run, phases: &[(&str, u64)]) {
+    let ph = run.stats["phases"].as_array().expect("phases");
+    let names: Vec<(&str, u64)> = ph
+        .iter()
+        .map(|p| {
+            (
+                p["name"].as_str().expect("name"),
+                p["spp"].as_u64().expect("spp"),
+            )
+        })
+        .collect();
+    assert_eq!(names, phases, "{}", run.stats);
+    assert_eq!(
+        run.stats["spp"].as_f64(),
+        Some(f64::from(run.status.job.spp))
+    );
+    let train = ph
+        .iter()
+        .find(|p| p["name"] == "train")
+        .expect("train phase");
+    let barrier = &train["barrier"];
+    let cells = barrier["cells"].as_u64().expect("cells");
+    let solved = barrier["cells_solved"].as_u64().expect("solved");
+    let fallback: u64 = barrier["cells_fallback"]
+        .as_object()
+        .expect("fallback")
+        .values()
+        .map(|v| v.as_u64().expect("count"))
+        .sum();
+    assert!(cells > 0 && solved + fallback == cells, "{barrier}");
+    assert_eq!(
+        barrier["blob"].as_str(),
+        Some(protocol::hash::sha256_hex(&run.coefficients).as_str())
+    );
+    assert_eq!(&run.coefficients[..4], b"CVCT");
+}
+
+fn cms_one_vs_three(backend: Backend) {
+    let scene = scene_json("cornell-box/scene.json");
+    let est = serde_json::json!({ "kind": "cms" });
+    let spec = spec(&scene, est.clone(), 7);
+    let one = run_job(&TestDb::new(backend), 1, &spec);
+    let three = run_job(&TestDb::new(backend), 3, &spec);
+    assert!(one.exr == three.exr, "1-worker and 3-worker EXRs differ");
+    assert!(
+        one.coefficients == three.coefficients,
+        "coefficient tables differ"
+    );
+    let local = local_cv_exr(&scene, &est, &one.status.job);
+    assert!(
+        one.exr == local,
+        "farm EXR differs from the in-process render"
+    );
+    // cms with `relative` (the default): surrogate 0..1, train 1..17, render 17..24.
+    check_stats(&one, &[("surrogate", 1), ("train", 16), ("render", 7)]);
+    let img = imageio::read_exr_bytes(&one.exr).expect("exr decodes");
+    let beauty = img.main_layer().expect("beauty");
+    assert!(beauty.data.iter().any(|p| p[0] > 0.0));
+}
+
+#[test]
+fn cms_one_and_three_workers_bitwise_identical_and_equal_to_local_sqlite() {
+    cms_one_vs_three(Backend::Sqlite);
+}
+
+#[test]
+fn cms_one_and_three_workers_bitwise_identical_and_equal_to_local_postgres() {
+    cms_one_vs_three(Backend::Postgres);
+}
+
+#[test]
+fn per_light_cv_and_optimal_mis_jobs_complete_with_local_bits() {
+    let scene = scene_json("cornell-box/scene.json");
+    let db = TestDb::new(Backend::Sqlite);
+    for (est, seed) in [
+        (serde_json::json!({ "kind": "per_light_cv" }), 3),
+        (
+            serde_json::json!({ "kind": "optimal_mis", "training_spp": 8, "min_samples": 4 }),
+            5,
+        ),
+    ] {
+        let run = run_job(&db, 2, &spec(&scene, est.clone(), seed));
+        let train = if est["kind"] == "per_light_cv" { 16 } else { 8 };
+        check_stats(&run, &[("train", train), ("render", 24 - train)]);
+        assert!(
+            run.exr == local_cv_exr(&scene, &est, &run.status.job),
+            "{est}: farm EXR differs from the in-process render"
+        );
+    }
+}
+
+/// A worker driven by hand through raw HTTP.
+struct FakeWorker {
+    c: Client,
+}
+
+impl FakeWorker {
+    fn register(url: &str) -> Self {
+        let enrol = Client::with_token(url, Some(ENROLL_TOKEN));
+        let r = enrol.request(
+            "POST",
+            "/v1/workers/register",
+            Some(br#"{"name":"fake"}"#.to_vec()),
+        );
+        assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+        let token = r.json()["token"].as_str().expect("token").to_owned();
+        Self {
+            c: Client::with_token(url, Some(&token)),
+        }
+    }
+
+    fn lease(&self) -> TaskLease {
+        let r = self.c.request(
+            "POST",
+            "/v1/workers/lease",
+            Some(br#"{"wait_ms":2000}"#.to_vec()),
+        );
+        assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+        serde_json::from_slice(&r.body).expect("lease")
+    }
+
+    fn upload(&self, l: &TaskLease, body: Vec<u8>) -> e2e::Resp {
+        self.c.request(
+            "PUT",
+            &format!("/v1/tasks/{}/result?attempt={}", l.task_id, l.attempt),
+            Some(body),
+        )
+    }
+}
+
+#[test]
+fn bad_train_uploads_are_4xx_json_and_the_task_is_redone() {
+    let db = TestDb::new(Backend::Sqlite);
+    let coord = Coordinator::start(db.config());
+    let client = Client::new(&coord.url());
+    let scene = scene_json("cornell-box/scene.json");
+    // Without `relative` the train phase comes first.
+    let est = serde_json::json!({ "kind": "cms", "relative": false });
+    let id = client.submit(&spec(&scene, est.clone(), 2));
+    let fake = FakeWorker::register(&coord.url());
+    let l = fake.lease();
+    assert_eq!(l.phase, PhaseKind::Train);
+    assert_eq!(
+        (l.surrogate.as_deref(), l.coefficients.as_deref()),
+        (None, None)
+    );
+    // A genuine training result of the leased tile, rendered the way a worker does.
+    let prepared = worker::tile::Prepared::new(
+        &serde_json::to_vec(&scene).expect("json"),
+        BTreeMap::new(),
+        &l.job,
+        &l.estimator,
+    )
+    .expect("prepare");
+    assert!(matches!(l.estimator, EstimatorSpec::Cms(_)));
+    let header = protocol::frame::TileHeader {
+        job_id: l.job_id,
+        task_id: l.task_id,
+        attempt: l.attempt,
+        rect: l.rect,
+        sample_start: l.sample_start,
+        sample_end: l.sample_end,
+    };
+    let good = prepared
+        .render_task(header, PhaseKind::Train, &Default::default())
+        .expect("train tile");
+    assert_eq!(good.cells.len(), 1);
+    let with = |f: &dyn Fn(&mut protocol::TileResult)| {
+        let mut r = good.clone();
+        f(&mut r);
+        r.encode()
+    };
+    // Σw of the first record: table header 24 bytes, then the accumulator's 32-byte header.
+    let nan_at = 24 + 32;
+    let bad: Vec<(&str, Vec<u8>)> = vec![
+        (
+            "truncated",
+            with(&|r| {
+                let n = r.cells[0].data.len();
+                r.cells[0].data.truncate(n - 5);
+            }),
+        ),
+        (
+            "non-finite",
+            with(&|r| r.cells[0].data[nan_at..nan_at + 8].copy_from_slice(&f64::NAN.to_le_bytes())),
+        ),
+        ("wrong kind", with(&|r| r.cells[0].kind = 2)),
+        ("no block", with(&|r| r.cells.clear())),
+    ];
+    for (what, body) in bad {
+        let r = fake.upload(&l, body);
+        assert_eq!(
+            r.status,
+            422,
+            "{what}: {}",
+            String::from_utf8_lossy(&r.body)
+        );
+        let e = r.api_error();
+        assert_eq!(e.code, "invalid_cells", "{what}: {e:?}");
+    }
+    assert_eq!(
+        coord
+            .block_on(coord.state.store.result_count(id))
+            .expect("count"),
+        0
+    );
+    // The task is still the fake's lease; it gives up and the task is leased again.
+    let r = fake.c.request(
+        "POST",
+        &format!("/v1/tasks/{}/fail?attempt={}", l.task_id, l.attempt),
+        Some(b"bad cells".to_vec()),
+    );
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    let w = Worker::start(&coord.url(), "w");
+    let status = client.wait(id, Duration::from_secs(300));
+    assert_eq!(status.state, JobState::Done, "{status:?}");
+    w.stop();
+    let t = coord
+        .block_on(coord.state.store.task(l.task_id))
+        .expect("store")
+        .expect("task");
+    assert!(t.done_attempt.expect("done") > i64::from(l.attempt));
+    assert!(client.download(id, "image.exr") == local_cv_exr(&scene, &est, &status.job));
+}
+
+#[test]
+fn coordinator_restart_between_train_and_render_finishes_identically() {
+    let db = TestDb::new(Backend::Sqlite);
+    let mut coord = Coordinator::start(db.config());
+    let client = Client::new(&coord.url());
+    let scene = scene_json("cornell-box/scene.json");
+    let est = serde_json::json!({ "kind": "cms", "relative": false, "training_spp": 8 });
+    let id = client.submit(&spec(&scene, est.clone(), 13));
+    // Render the whole train phase with a fake worker, so the barrier is due with no
+    // worker around; then kill the coordinator before or after it ran.
+    let fake = FakeWorker::register(&coord.url());
+    let first = fake.lease();
+    let prepared = worker::tile::Prepared::new(
+        &serde_json::to_vec(&scene).expect("json"),
+        BTreeMap::new(),
+        &first.job,
+        &first.estimator,
+    )
+    .expect("prepare");
+    let train_tasks = protocol::job::plan_phases(&first.job, &first.estimator)[0]
+        .tasks
+        .len();
+    let mut lease = Some(first);
+    let mut uploaded = 0;
+    while let Some(l) = lease.take() {
+        assert_eq!(l.phase, PhaseKind::Train);
+        let header = protocol::frame::TileHeader {
+            job_id: l.job_id,
+            task_id: l.task_id,
+            attempt: l.attempt,
+            rect: l.rect,
+            sample_start: l.sample_start,
+            sample_end: l.sample_end,
+        };
+        let r = prepared
+            .render_task(header, PhaseKind::Train, &Default::default())
+            .expect("train tile");
+        let up = fake.upload(&l, r.encode());
+        assert_eq!(up.status, 200, "{}", String::from_utf8_lossy(&up.body));
+        uploaded += 1;
+        if uploaded < train_tasks {
+            lease = Some(fake.lease());
+        }
+    }
+    coord.restart();
+    // A fresh client: the old one's pooled connection died with the coordinator.
+    let client = Client::new(&coord.url());
+    let w = Worker::start(&coord.url(), "after-restart");
+    let status = client.wait(id, Duration::from_secs(300));
+    assert_eq!(status.state, JobState::Done, "{status:?}");
+    w.stop();
+    assert!(client.download(id, "image.exr") == local_cv_exr(&scene, &est, &status.job));
+}
+
+#[test]
+fn cms_on_two_coordinators_sharing_one_postgres() {
+    let db = TestDb::new(Backend::Postgres);
+    let a = Coordinator::start(db.config());
+    let b = Coordinator::start(db.config());
+    let scene = scene_json("cornell-box/scene.json");
+    let est = serde_json::json!({ "kind": "cms" });
+    let id = Client::new(&a.url()).submit(&spec(&scene, est.clone(), 21));
+    let wa = Worker::start(&a.url(), "wa");
+    let wb = Worker::start(&b.url(), "wb");
+    // Both coordinators may run a barrier; exactly one advances the job each time.
+    let status = Client::new(&b.url()).wait(id, Duration::from_secs(300));
+    assert_eq!(status.state, JobState::Done, "{status:?}");
+    wa.stop();
+    wb.stop();
+    let farm = Client::new(&a.url()).download(id, "image.exr");
+    assert!(farm == local_cv_exr(&scene, &est, &status.job));
+}
