@@ -164,9 +164,10 @@ struct Prim {
 /// Per-mesh data needed to finish a hit.
 #[derive(Clone, Debug)]
 struct MeshGeom {
-    normals: Option<Vec<Vec3>>,
-    uvs: Option<Vec<Vec2>>,
-    indices: Vec<[u32; 3]>,
+    /// Whether the mesh has vertex normals (then in [`Accel::prim_normals`]).
+    has_normals: bool,
+    /// Whether the mesh has UVs (then in [`Accel::prim_uvs`]).
+    has_uvs: bool,
     material: MaterialId,
     light: Option<u32>,
 }
@@ -188,6 +189,10 @@ struct SphereGeom {
 pub struct Accel {
     bvh: Bvh,
     prims: Vec<Prim>,
+    /// Vertex normals per primitive of `prims` (empty when no mesh has normals).
+    prim_normals: Vec<[Vec3; 3]>,
+    /// Vertex UVs per primitive of `prims` (empty when no mesh has UVs).
+    prim_uvs: Vec<[Vec2; 3]>,
     meshes: Vec<MeshGeom>,
     spheres: Vec<SphereGeom>,
     bounds_min: Vec3,
@@ -292,13 +297,47 @@ impl Accel {
             .iter()
             .enumerate()
             .map(|(i, m)| MeshGeom {
-                normals: m.normals.clone(),
-                uvs: m.uvs.clone(),
-                indices: m.indices.clone(),
+                has_normals: m.normals.is_some(),
+                has_uvs: m.uvs.is_some(),
                 material: m.material,
                 light: mesh_lights.get(i).copied().flatten(),
             })
             .collect();
+        // Per-primitive vertex attributes in primitive order: one load in `finish_hit`
+        // instead of mesh → index triple → attribute (empty when no mesh has any).
+        let corners = |p: &Prim| -> Option<(&scene::Mesh, [usize; 3])> {
+            let m = (p.shape & SPHERE_BIT == 0).then(|| &scene.meshes[p.shape as usize])?;
+            let idx = m.indices.get(p.index as usize)?;
+            Some((m, idx.map(|i| i as usize)))
+        };
+        let prim_normals = if scene.meshes.iter().any(|m| m.normals.is_some()) {
+            prims
+                .iter()
+                .map(|p| match corners(p) {
+                    Some((m, idx)) => m
+                        .normals
+                        .as_ref()
+                        .map_or([Vec3::ZERO; 3], |n| idx.map(|i| n[i])),
+                    None => [Vec3::ZERO; 3],
+                })
+                .collect()
+        } else {
+            Vec::new()
+        };
+        let prim_uvs = if scene.meshes.iter().any(|m| m.uvs.is_some()) {
+            prims
+                .iter()
+                .map(|p| match corners(p) {
+                    Some((m, idx)) => m
+                        .uvs
+                        .as_ref()
+                        .map_or([Vec2::ZERO; 3], |uv| idx.map(|i| uv[i])),
+                    None => [Vec2::ZERO; 3],
+                })
+                .collect()
+        } else {
+            Vec::new()
+        };
         let spheres = scene
             .spheres
             .iter()
@@ -315,6 +354,8 @@ impl Accel {
         Self {
             bvh,
             prims,
+            prim_normals,
+            prim_uvs,
             meshes,
             spheres,
             bounds_min,
@@ -431,22 +472,21 @@ impl Accel {
             }
         } else {
             let m = &self.meshes[prim.shape as usize];
-            let idx = m.indices[prim.index as usize].map(|i| i as usize);
             let (b1, b2) = (raw.u, raw.v);
             let b0 = 1.0 - b1 - b2;
             let p = prim.a * b0 + prim.b * b1 + prim.c * b2;
             let ng = prim.ng;
-            let ns = match &m.normals {
-                Some(n) => {
-                    let v = n[idx[0]] * b0 + n[idx[1]] * b1 + n[idx[2]] * b2;
+            let ns = match self.prim_normals.get(raw.prim as usize) {
+                Some(n) if m.has_normals => {
+                    let v = n[0] * b0 + n[1] * b1 + n[2] * b2;
                     let v = v.normalize_or_zero();
                     if v == Vec3::ZERO { ng } else { v }
                 }
-                None => ng,
+                _ => ng,
             };
-            let uv = match &m.uvs {
-                Some(uv) => uv[idx[0]] * b0 + uv[idx[1]] * b1 + uv[idx[2]] * b2,
-                None => Vec2::new(b1, b2),
+            let uv = match self.prim_uvs.get(raw.prim as usize) {
+                Some(uv) if m.has_uvs => uv[0] * b0 + uv[1] * b1 + uv[2] * b2,
+                _ => Vec2::new(b1, b2),
             };
             Hit {
                 t,

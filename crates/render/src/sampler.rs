@@ -16,12 +16,35 @@
 //!
 //! All values lie in `[0, 1)`.
 
+use std::sync::OnceLock;
+
 use glam::Vec2;
+use sobol_burley::parts::Int4;
 
 /// Dimensions covered by the Sobol tables of `sobol_burley`.
 const SOBOL_DIMENSIONS: u32 = sobol_burley::NUM_DIMENSION_SETS_4D * 4;
 /// Sample indices covered by `sobol_burley` (2¹⁶).
 const SOBOL_MAX_SAMPLES: u32 = 1 << 16;
+
+/// Sobol direction vectors: `[set][k]` is the contribution (bit-reversed, as `sobol_burley`
+/// stores it) of bit `31 − k` of the bit-reversed sample index to the set's 4 dimensions.
+type Directions = [[[u32; 4]; 16]];
+
+/// The direction table, read off `sobol_burley::parts::sobol_int4_rev` once: a Sobol point is
+/// the XOR of the direction vectors of the index's set bits, so index `1 << (31 − k)` yields
+/// vector `k`. Lets [`Sampler`] XOR all 16 with masks (no data-dependent loop exit).
+fn directions() -> &'static Directions {
+    static TABLE: OnceLock<Box<Directions>> = OnceLock::new();
+    TABLE.get_or_init(|| {
+        (0..sobol_burley::NUM_DIMENSION_SETS_4D)
+            .map(|set| {
+                std::array::from_fn(|k| {
+                    sobol_burley::parts::sobol_int4_rev(1u32 << (31 - k), set).into()
+                })
+            })
+            .collect()
+    })
+}
 
 /// A sampler positioned at one (pixel, sample index); cheap to create (no allocation).
 ///
@@ -42,6 +65,7 @@ pub struct Sampler {
     /// Dimension set (dimensions `4·set .. 4·set + 3`) held in `cache`; `u32::MAX` = none.
     cached_set: u32,
     cache: [f32; 4],
+    table: &'static Directions,
 }
 
 impl Sampler {
@@ -62,6 +86,7 @@ impl Sampler {
             dimension: 0,
             cached_set: u32::MAX,
             cache: [0.0; 4],
+            table: directions(),
         }
     }
 
@@ -118,8 +143,16 @@ impl Sampler {
     /// of `sobol_burley::sample_4d(sample_index, set, scramble)` after the index shuffle.
     #[inline]
     fn sobol_4d(&self, set: u32) -> [f32; 4] {
-        use sobol_burley::parts::{Int4, hash_int4, owen_scramble_int4_rev, sobol_int4_rev};
-        let sobol = sobol_int4_rev(self.shuffled_rev_index, set);
+        use sobol_burley::parts::{hash_int4, owen_scramble_int4_rev};
+        // `sobol_int4_rev(shuffled_rev_index, set)`, branch-free.
+        let r = self.shuffled_rev_index;
+        let mut sobol = Int4::from([0u32; 4]);
+        if let Some(dirs) = self.table.get(set as usize) {
+            for (k, d) in dirs.iter().enumerate() {
+                let mask = 0u32.wrapping_sub((r >> (31 - k)) & 1);
+                sobol ^= Int4::from(*d) & Int4::from([mask; 4]);
+            }
+        }
         let base = self.scramble_mul ^ set;
         let scramble: Int4 = [
             base ^ 0x912f_69ba,

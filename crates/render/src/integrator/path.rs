@@ -158,6 +158,10 @@ pub fn trace<O: VertexObserver>(
         let u_bsdf = sampler.next_2d();
         let u_rr = sampler.next_1d();
 
+        // The BSDF sample does not depend on NEE: taking it first lets its arithmetic overlap
+        // the light sample's.
+        let bsdf_sample = bsdf.sample(wo, u_lobe, u_bsdf);
+
         // ---- emitter sampling (NEE) ----
         let mut light_tech = None;
         // Selection then sampling, exactly as `Lights::sample`, keeping the selected light
@@ -214,7 +218,7 @@ pub fn trace<O: VertexObserver>(
         let nee_light = nee_sel.map(|(l, _)| l);
 
         // ---- BSDF sampling ----
-        let Some(bs) = bsdf.sample(wo, u_lobe, u_bsdf) else {
+        let Some(bs) = bsdf_sample else {
             report(
                 observer,
                 &mut radiance,
