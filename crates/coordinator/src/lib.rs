@@ -16,8 +16,10 @@
 //! - [`error`]: [`error::AppError`] → HTTP status + JSON error body.
 //! - [`routes`]: one module per resource (`jobs`, `assets`, `workers`, `tasks`, `health`,
 //!   `meta`: metrics, OpenAPI, docs).
-//! - [`finish`]: phase completion: image assembly in canonical order, EXR/PNG/stats outputs.
-//! - [`reaper`]: background loop expiring leases and finishing complete jobs.
+//! - [`finish`]: the phase machine: CV barriers (surrogate image; merge in canonical order +
+//!   solve → content-addressed coefficient table) and the finish (image assembly of all
+//!   phases in canonical order, EXR/PNG/stats outputs).
+//! - [`reaper`]: background loop expiring leases and advancing jobs whose phase is complete.
 //! - [`convergence`]: a job's convergence series (`convergence.csv`), computed from stored results.
 
 #![deny(missing_docs)]

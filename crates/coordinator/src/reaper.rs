@@ -1,7 +1,7 @@
 //! The reaper: a background loop that reclaims expired leases (counting a failed attempt
-//! against the task, and against the worker for that job) and finishes jobs whose last phase
-//! is complete but not yet finished (e.g. the coordinator died between the last upload and
-//! the image assembly). Each pass reads everything it needs from the store, so several
+//! against the task, and against the worker for that job) and advances jobs whose active
+//! phase is complete — runs the phase barrier or finishes the job — when nobody did yet (e.g.
+//! the coordinator died between a phase's last upload and its barrier). Each pass reads everything it needs from the store, so several
 //! coordinators may run reapers against one PostgreSQL safely: every transition is a
 //! conditional update that only one of them wins.
 
@@ -27,7 +27,7 @@ pub async fn run(state: Arc<AppState>, mut stop: tokio::sync::watch::Receiver<bo
     }
 }
 
-/// One pass: expire leases, fail jobs over the retry cap, finish complete jobs.
+/// One pass: expire leases, fail jobs over the retry cap, advance jobs with a complete phase.
 #[tracing::instrument(skip_all)]
 pub async fn pass(state: &AppState) -> Result<(), StoreError> {
     let store = &state.store;

@@ -101,7 +101,9 @@ pub fn openapi() -> serde_json::Value {
                     "properties": {
                         "scene": { "description": "{\"inline\": <native scene JSON>} or {\"bundle\": <sha256>}" },
                         "assets": { "type": "object", "additionalProperties": { "type": "string", "pattern": "^[0-9a-f]{64}$" } },
-                        "estimator": { "type": "object", "required": ["kind"], "properties": { "kind": { "enum": ["path", "ocv", "cms", "per_light_cv", "optimal_mis", "rerender", "gradient"] } } },
+                        "estimator": { "type": "object", "required": ["kind"],
+                            "description": "kind plus that estimator's options (protocol::job::EstimatorSpec; options of estimators::spec: OcvOptions, CmsOptions, PerLightCvOptions, OptimalMisOptions; unknown options rejected). Supported: path, ocv, cms, per_light_cv, optimal_mis; rerender and gradient answer 422 unsupported. CV kinds run the phases surrogate (relative cms) → train → render.",
+                            "properties": { "kind": { "enum": ["path", "ocv", "cms", "per_light_cv", "optimal_mis", "rerender", "gradient"] } } },
                         "spp": { "type": "integer", "minimum": 1 },
                         "time_budget_s": { "type": "number" },
                         "target_rel_mse": { "type": "number" },
@@ -132,7 +134,8 @@ pub fn openapi() -> serde_json::Value {
             "/v1/jobs/{id}/resume": { "post": op("Resume a paused job", "client", "200") },
             "/v1/jobs/{id}/image.exr": { "get": op("Multi-layer EXR (beauty, variance, albedo, normal) of a finished job", "client", "200") },
             "/v1/jobs/{id}/preview.png": { "get": op("sRGB preview of a finished job", "client", "200") },
-            "/v1/jobs/{id}/stats.json": { "get": op("Time per phase, spp, estimated error, effects simulated", "client", "200") },
+            "/v1/jobs/{id}/stats.json": { "get": op("Time, tasks and spp per phase, barrier results (cells solved/fallback, blob address), estimated error, effects simulated", "client", "200") },
+            "/v1/jobs/{id}/coefficients": { "get": op("Solved coefficient table of a CV job (estimators::table encoding, kind 3); 404 before the train barrier", "client", "200") },
             "/v1/jobs/{id}/convergence.csv": { "get": op("Convergence series seconds,spp,rel_mse_est,tasks_done, one row per completed sample round (running jobs too)", "client", "200") },
             "/v1/events": { "get": op("Server-Sent Events (text/event-stream): job, phase (coefficients announced), progress; ?job=ID filters; resumes after Last-Event-ID", "client", "200") },
             "/v1/assets/{sha256}": {
@@ -142,7 +145,7 @@ pub fn openapi() -> serde_json::Value {
             "/v1/workers/register": { "post": op("Register a worker; returns its token", "enrollment", "201") },
             "/v1/workers/lease": { "post": op("Long-poll for a task lease (204: none)", "worker", "200") },
             "/v1/tasks/{id}/heartbeat": { "post": op("Extend the lease of ?attempt=N", "worker", "200") },
-            "/v1/tasks/{id}/result": { "put": op("Upload the TileResult frame stream of ?attempt=N (409: stale attempt)", "worker", "200") },
+            "/v1/tasks/{id}/result": { "put": op("Upload the TileResult frame stream of ?attempt=N (409: stale attempt; 422 invalid_cells: a train result's cell block is missing, truncated, non-finite, of the wrong kind, out of key range or of another layout)", "worker", "200") },
             "/v1/tasks/{id}/release": { "post": op("Give the lease of ?attempt=N back", "worker", "200") },
             "/v1/tasks/{id}/fail": { "post": op("Report a failed attempt ?attempt=N", "worker", "200") }
         }

@@ -9,6 +9,7 @@
 //! | GET | `/v1/jobs`, `/v1/jobs/{id}` | client | list / status |
 //! | POST | `/v1/jobs/{id}/cancel`, `/pause`, `/resume` | client | cancel, pause, resume |
 //! | GET | `/v1/jobs/{id}/image.exr`, `preview.png`, `stats.json` | client | outputs of a finished job |
+//! | GET | `/v1/jobs/{id}/coefficients` | client | solved coefficient table of a CV job (404 before its train barrier) |
 //! | GET | `/v1/jobs/{id}/convergence.csv` | client | convergence series (running jobs too) |
 //! | GET | `/v1/events[?job=ID]` | client | Server-Sent Events: job, phase, progress |
 //! | PUT / GET | `/v1/assets/{sha256}` | client / client or worker | content-addressed upload / download |
