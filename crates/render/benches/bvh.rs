@@ -1,14 +1,16 @@
 //! BVH throughput: closest-hit and any-hit rays/s on a procedural ~1M-triangle mesh (a
 //! displaced cube-sphere) with incoherent random rays.
 //!
-//! `cargo bench -p render --bench bvh` (set `BVH_BENCH_RAYS` to change the ray count).
+//! `cargo bench -p render --bench bvh` (set `BVH_BENCH_RAYS` to change the ray count,
+//! `BVH_BENCH_N` the grid size per cube face (default 289: 12·289² ≈ 1M triangles) and
+//! `BVH_BENCH_KIND` to `wide` or `cwbvh` to force a BVH; default: the one `Accel::new` picks).
 //! Reference point (DESIGN §8): Embree ≈ 1.5 Mrays/s/core incoherent on this CPU; target ≥ 0.6×.
 
 use std::time::Instant;
 
 use glam::{Mat4, Vec3};
 use rayon::prelude::*;
-use render::accel::Accel;
+use render::accel::{Accel, AccelKind};
 use render::math::Ray;
 use render::sampler::mix64;
 
@@ -82,7 +84,16 @@ fn main() {
         .ok()
         .and_then(|s| s.parse().ok())
         .unwrap_or(2_000_000);
-    let mesh = displaced_sphere(289);
+    let grid: u32 = std::env::var("BVH_BENCH_N")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(289);
+    let kind = match std::env::var("BVH_BENCH_KIND").as_deref() {
+        Ok("wide") => AccelKind::Wide,
+        Ok("cwbvh") => AccelKind::Cwbvh,
+        _ => AccelKind::Auto,
+    };
+    let mesh = displaced_sphere(grid);
     let tris = mesh.indices.len();
     let scene = scene::Scene {
         camera: scene::Camera {
@@ -110,9 +121,12 @@ fn main() {
         environment: None,
     };
     let t = Instant::now();
-    let accel = Accel::new(&scene, &[], &[]);
+    let accel = Accel::with_kind(&scene, &[], &[], kind);
     let build = t.elapsed().as_secs_f64();
-    println!("mesh: {tris} triangles; BVH build {build:.2} s (single thread)");
+    println!(
+        "mesh: {tris} triangles; {:?} BVH build {build:.2} s (single thread)",
+        accel.kind()
+    );
 
     // Incoherent rays: origins uniform in the ball of radius 1.5 (inside and outside the
     // surface), directions uniform on the sphere.
