@@ -8,7 +8,8 @@
 //! - [`math`]: rays and orthonormal frames.
 //! - [`sampler`]: deterministic sampler per (seed, pixel, sample index, dimension).
 //! - [`camera`]: Mitsuba-compatible pinhole camera.
-//! - [`accel`]: obvhs CWBVH over triangles + analytic spheres; `Hit` records.
+//! - [`accel`]: BVH over triangles + analytic spheres (our 8-wide packet BVH for scenes up to
+//!   65536 primitives, obvhs CWBVH above); `Hit` records.
 //! - [`texture`]: bitmap and checkerboard lookups.
 //! - [`bsdf`]: diffuse, conductor, rough conductor, rough plastic (one file each).
 //! - [`light`]: area lights (meshes, spheres), env map, constant; light selection.
