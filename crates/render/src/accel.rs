@@ -48,7 +48,8 @@ pub enum AccelKind {
     /// [`AccelKind::Wide`] up to [`WIDE_MAX_PRIMS`] primitives, else [`AccelKind::Cwbvh`].
     #[default]
     Auto,
-    /// Our 8-wide BVH with SoA triangle packets (fast for small scenes).
+    /// Our 8-wide BVH with SoA triangle packets (fast for small scenes); the CWBVH is built
+    /// instead if the tree would need a deeper traversal stack than it has.
     Wide,
     /// obvhs' compressed wide BVH (fast to build and traverse for large meshes).
     Cwbvh,

@@ -1,11 +1,13 @@
 //! The BVH for scenes of up to [`WIDE_MAX_PRIMS`] primitives: an 8-wide BVH whose nodes keep
 //! their children's boxes in SoA and whose leaves are **packets** of up to 8 triangles in SoA,
-//! so that one box test or one triangle test covers 8 children or triangles at once (the loops
-//! over the 8 lanes are written so that LLVM turns them into AVX2 code on x86-64-v3).
+//! so that one box test or one triangle test covers 8 children or triangles at once (AVX2
+//! intrinsics when the build targets AVX2 — x86-64-v3, `.cargo/config.toml` — else the same
+//! arithmetic as plain lane loops).
 //!
 //! Why: the test scenes (the Cornell box: 36 triangles, the many-lights room: ~170) are tiny;
-//! there obvhs' compressed CWBVH spends most of a ray in node decoding. Large meshes keep the
-//! CWBVH (see [`super::AccelKind`]).
+//! there obvhs' compressed CWBVH spends most of a ray in node decoding. `benches/bvh.rs` with
+//! `BVH_BENCH_KIND` shows this BVH at least as fast as the CWBVH from 1K to 1M triangles too;
+//! above [`WIDE_MAX_PRIMS`] the CWBVH is kept all the same (faster, parallel-friendly build).
 //!
 //! Contract (same as [`super::Accel`]):
 //! - the triangle test is the watertight test of [`super::intersect_prim`], evaluated lane by
@@ -21,8 +23,10 @@
 //! Build: top-down binned SAH (16 bins per axis on centroids). Each node takes up to 8
 //! clusters obtained by repeatedly splitting its largest cluster; a cluster of ≤ 8 triangles
 //! (or one sphere) becomes a leaf, and leaf clusters are split further only while slots are
-//! free and the split shrinks the summed box area (fewer packet tests per ray). Below depth
-//! [`MEDIAN_DEPTH`] splits are object medians, which bounds the depth and the traversal stack.
+//! free and the split shrinks the summed box area (fewer packet tests per ray). From binary
+//! depth [`MEDIAN_DEPTH`] on, splits are object medians, which bounds the depth; a tree whose
+//! traversal could need more than [`STACK`] stack entries is not used (the caller builds the
+//! CWBVH instead), so traversal needs no heap and no overflow checks beyond slice bounds.
 
 use glam::Vec3;
 
