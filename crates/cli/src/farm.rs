@@ -9,7 +9,13 @@
 //! CVFARM_WORKER_TOKEN=w cvfarm worker --coordinator http://127.0.0.1:8080
 //! CVFARM_CLIENT_TOKEN=c cvfarm submit scenes/cornell-box/scene.json --coordinator http://127.0.0.1:8080 \
 //!     --spp 64 --res 256x256 --wait -o out.exr
+//! CVFARM_CLIENT_TOKEN=c cvfarm submit scenes/cornell-box/scene.json --coordinator http://127.0.0.1:8080 \
+//!     --estimator cms --opt training_spp=32 --spp 128 --wait -o cms.exr
 //! ```
+//!
+//! `submit` parses `--estimator`, `--opt` and `--estimator-json` exactly like `cvfarm render`
+//! (same option structs, same errors, exit status 2 for a bad option); the progress bar
+//! names the job's current phase (surrogate, train, render for the CV estimators).
 //!
 //! `serve` and `worker` stop gracefully on SIGTERM or ctrl-c: the coordinator drains its
 //! requests (all state is already in the store), a worker finishes the tile in hand.
@@ -81,18 +87,21 @@ pub struct SubmitArgs {
     /// Client bearer token.
     #[arg(long, env = "CVFARM_CLIENT_TOKEN", hide_env_values = true)]
     pub client_token: String,
-    /// Estimator (`estimator.kind`; the coordinator says which it supports).
-    #[arg(long, env = "CVFARM_ESTIMATOR", default_value = "path")]
-    pub estimator: String,
+    /// Estimator [default: path, or the kind of --estimator-json]: path, ocv, cms,
+    /// per_light_cv, optimal_mis (parsed exactly as by `cvfarm render`).
+    #[arg(long, env = "CVFARM_ESTIMATOR", value_enum)]
+    pub estimator: Option<crate::render_cmd::EstimatorArg>,
     /// Estimator option `key=value` (repeatable; the value is JSON when it parses as JSON,
-    /// else a string). Unknown options are rejected by the coordinator, naming them.
-    #[arg(
-        long = "opt",
-        env = "CVFARM_OPTS",
-        value_name = "KEY=VALUE",
-        value_delimiter = ','
-    )]
+    /// else a string), e.g. --opt grid_resolution=[8,8,8]. Unknown options are errors
+    /// listing the valid ones.
+    #[arg(long = "opt", value_name = "KEY=VALUE")]
     pub opts: Vec<String>,
+    /// Estimator as JSON ({"kind":"cms","training_spp":32}) or @file.json.
+    #[arg(long, env = "CVFARM_ESTIMATOR_JSON", value_name = "JSON|@FILE")]
+    pub estimator_json: Option<String>,
+    /// Sample range length per task (splits tiles in time) [default: spp].
+    #[arg(long, env = "CVFARM_SAMPLES_PER_TASK")]
+    pub samples_per_task: Option<u32>,
     /// Samples per pixel [default: 16].
     #[arg(long, env = "CVFARM_SPP")]
     pub spp: Option<u32>,
@@ -238,15 +247,16 @@ fn parse_res(s: &str) -> Result<[u32; 2]> {
     Ok([w, h])
 }
 
-/// `{"kind": NAME, key: value, …}` from `--estimator` and `--opt`s.
-fn estimator_json(kind: &str, opts: &[String]) -> Result<serde_json::Value> {
-    let mut m = serde_json::Map::new();
-    m.insert("kind".into(), kind.into());
-    for o in opts {
-        let (k, v) = crate::estimator_opts::parse_opt(o)?;
-        m.insert(k, v);
-    }
-    Ok(serde_json::Value::Object(m))
+/// The job's `estimator` object from `--estimator`, `--estimator-json` and the `--opt`s,
+/// parsed and checked exactly as `cvfarm render` does ([`crate::estimator_opts::build`]), so
+/// a job means the same thing locally and on the farm. Every option is written out.
+fn estimator_json(args: &SubmitArgs) -> Result<serde_json::Value> {
+    let est = crate::estimator_opts::build(
+        args.estimator.map(crate::render_cmd::EstimatorArg::name),
+        args.estimator_json.as_deref(),
+        &args.opts,
+    )?;
+    Ok(serde_json::to_value(est)?)
 }
 
 /// A blocking-style HTTP client for `submit`.
@@ -323,13 +333,16 @@ pub fn submit(args: &SubmitArgs) -> Result<ExitCode> {
         let mut spec = serde_json::json!({
             "scene": { "inline": desc },
             "assets": assets,
-            "estimator": estimator_json(&args.estimator, &args.opts)?,
+            "estimator": estimator_json(args)?,
             "seed": args.seed,
             "tile_size": args.tile_size,
             "priority": args.priority,
         });
         if let Some(spp) = args.spp {
             spec["spp"] = spp.into();
+        }
+        if let Some(n) = args.samples_per_task {
+            spec["samples_per_task"] = n.into();
         }
         if let Some(d) = args.max_depth {
             spec["max_depth"] = d.into();
@@ -390,7 +403,7 @@ async fn wait(api: &Api, id: i64) -> Result<JobStatus> {
     let bar = indicatif::ProgressBar::new(0);
     bar.set_style(
         indicatif::ProgressStyle::with_template(
-            "{elapsed_precise} [{bar:40}] {pos}/{len} tasks {msg}",
+            "{elapsed_precise} {prefix} [{bar:40}] {pos}/{len} tasks {msg}",
         )
         .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
     );
@@ -401,6 +414,7 @@ async fn wait(api: &Api, id: i64) -> Result<JobStatus> {
             .await?
             .json()
             .await?;
+        bar.set_prefix(status.phase.as_str());
         bar.set_length(status.tasks_total);
         bar.set_position(status.tasks_done);
         if !matches!(status.state, JobState::Running | JobState::Paused) {

@@ -186,11 +186,76 @@ fn serve_worker_submit_processes_with_a_sigkilled_worker_match_cvfarm_render() {
     );
     assert!(a == b, "farm EXR differs from cvfarm render");
 
+    // A CV job through the CLI: same estimator flags as `cvfarm render`, same image layers
+    // bit for bit (the local EXR has the estimator's extra layers besides).
+    let cms_args = [
+        "--estimator",
+        "cms",
+        "--opt",
+        "training_spp=8",
+        "--res",
+        "32x32",
+        "--spp",
+        "16",
+        "--seed",
+        "4",
+    ];
+    let (farm_cms, local_cms) = (dir.join("farm_cms.exr"), dir.join("local_cms.exr"));
+    let st = Command::new(&bin)
+        .args(["submit", scene, "--coordinator", &url, "--tile-size", "16"])
+        .args(cms_args)
+        .args(["--wait", "-o", farm_cms.to_str().expect("utf8")])
+        .envs(env)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status()
+        .expect("submit runs");
+    assert!(st.success());
+    let st = Command::new(&bin)
+        .args(["render", scene])
+        .args(cms_args)
+        .args(["-o", local_cms.to_str().expect("utf8")])
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status()
+        .expect("render runs");
+    assert!(st.success());
+    let read = |p: &std::path::Path| {
+        imageio::read_exr_bytes(&std::fs::read(p).expect("exr")).expect("exr decodes")
+    };
+    let (f, l) = (read(&farm_cms), read(&local_cms));
+    for name in ["beauty", "variance", "albedo", "normal"] {
+        let bits = |img: &imageio::ExrImage| -> Vec<u32> {
+            img.layer(name)
+                .unwrap_or_else(|| panic!("layer {name}"))
+                .data
+                .iter()
+                .flatten()
+                .map(|v| v.to_bits())
+                .collect()
+        };
+        assert!(
+            bits(&f) == bits(&l),
+            "cms layer {name}: farm differs from cvfarm render"
+        );
+    }
+
     // Bad input from the CLI: one error line naming the problem, non-zero exit.
-    for (args, needle) in [
-        (vec!["--estimator", "cms"], "cms"),
-        (vec!["--opt", "bogus=1"], "bogus"),
-        (vec!["--res", "999999x2"], "resolution"),
+    // A bad option value is the coordinator's 422 (exit 1); an unknown option or estimator is
+    // a usage error found before anything is sent (exit 2), as for `cvfarm render`.
+    for (args, needle, code) in [
+        (
+            vec!["--estimator", "cms", "--opt", "grid_resolution=[0,1,1]"],
+            "grid_resolution",
+            1,
+        ),
+        (vec!["--opt", "bogus=1"], "bogus", 2),
+        (
+            vec!["--estimator", "cms", "--opt", "trainig_spp=3"],
+            "trainig_spp",
+            2,
+        ),
+        (vec!["--res", "999999x2"], "resolution", 1),
     ] {
         let r = Command::new(&bin)
             .args(["submit", scene, "--coordinator", &url])
@@ -199,7 +264,7 @@ fn serve_worker_submit_processes_with_a_sigkilled_worker_match_cvfarm_render() {
             .output()
             .expect("submit runs");
         let err = String::from_utf8_lossy(&r.stderr);
-        assert_eq!(r.status.code(), Some(1), "{args:?}: {err}");
+        assert_eq!(r.status.code(), Some(code), "{args:?}: {err}");
         assert!(
             err.contains(needle) && err.lines().count() == 1,
             "{args:?}: {err}"
