@@ -284,6 +284,94 @@ fn convergence_csv_has_one_row_per_round_postgres() {
     convergence(Backend::Postgres);
 }
 
+/// A `cms` job: the stream reports each phase (surrogate, train, render) and the coefficient
+/// table the train barrier announced, whose address is the one `/coefficients` serves; the
+/// convergence series has rounds of every phase and ends at the stats.json estimate.
+fn cms_events_and_convergence(backend: Backend) {
+    let db = TestDb::new(backend);
+    let coord = Coordinator::start(db.config());
+    let client = Client::new(&coord.url());
+    let mut s = spec(16, 24, 4);
+    s["estimator"] = serde_json::json!({ "kind": "cms" });
+    let id = client.submit(&s);
+    let stream = SseStream::open(&coord.url(), &format!("/v1/events?job={id}"), None);
+    let w = Worker::start(&coord.url(), "w");
+    let seen = stream.until(Duration::from_secs(180), |e| is_end(e, id));
+    w.stop();
+    assert_eq!(
+        seen.last().expect("events").data["state"],
+        "done",
+        "{seen:?}"
+    );
+    let coefficients = protocol::hash::sha256_hex(&client.download(id, "coefficients"));
+    let announced: Vec<&SseEvent> = seen
+        .iter()
+        .filter(|e| e.kind == "phase" && e.data["coefficients"].is_string())
+        .collect();
+    assert!(!announced.is_empty(), "no coefficients announced: {seen:?}");
+    assert!(
+        announced
+            .iter()
+            .all(|e| e.data["coefficients"] == coefficients.as_str() && e.data["phase"] == "render"),
+        "{announced:?}"
+    );
+    for phase in ["surrogate", "train", "render"] {
+        assert!(
+            seen.iter().any(|e| e.kind == "phase"
+                && e.data["phase"] == phase
+                && e.data["finished_ms"].is_i64()),
+            "no finished `{phase}` phase event: {seen:?}"
+        );
+    }
+    // One row per round: per distinct (phase, sample range) of the job's tasks.
+    let rounds = coord.block_on(rounds_of(&coord, id));
+    assert!(rounds >= 3, "a cms job has at least one round per phase");
+    let csv = String::from_utf8(client.download(id, "convergence.csv")).expect("utf-8");
+    let rows: Vec<Vec<f64>> = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').map(|x| x.parse().expect("number")).collect())
+        .collect();
+    assert_eq!(rows.len() as i64, rounds, "{csv}");
+    assert!(rows.windows(2).all(|w| w[1][1] > w[0][1]), "{csv}");
+    let stats: serde_json::Value =
+        serde_json::from_slice(&client.download(id, "stats.json")).expect("stats");
+    let last = rows.last().expect("rows");
+    assert_eq!(Some(last[1]), stats["spp"].as_f64(), "{csv}\n{stats}");
+    assert_eq!(
+        Some(last[2]),
+        stats["estimated_rel_mse"].as_f64(),
+        "{csv}\n{stats}"
+    );
+}
+
+/// Distinct (phase, sample range) pairs of a job's tasks, read from the store.
+async fn rounds_of(coord: &Coordinator, job: i64) -> i64 {
+    let store = &coord.state.store;
+    let mut sql = "SELECT COUNT(*) AS n FROM (SELECT DISTINCT phase_idx, sample_start, sample_end \
+                   FROM tasks WHERE job_id = ?) r"
+        .to_owned();
+    if store.backend() == coordinator::store::Backend::Postgres {
+        sql = coordinator::store::dollar_placeholders(&sql);
+    }
+    let row = sqlx::query(&sql)
+        .bind(job)
+        .fetch_one(store.pool())
+        .await
+        .expect("rounds query");
+    sqlx::Row::try_get(&row, "n").expect("count")
+}
+
+#[test]
+fn cms_job_announces_coefficients_sqlite() {
+    cms_events_and_convergence(Backend::Sqlite);
+}
+
+#[test]
+fn cms_job_announces_coefficients_postgres() {
+    cms_events_and_convergence(Backend::Postgres);
+}
+
 #[test]
 fn event_streams_end_when_the_coordinator_shuts_down() {
     let db = TestDb::new(Backend::Sqlite);

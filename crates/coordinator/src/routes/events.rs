@@ -9,11 +9,11 @@
 //! | event | when | data (JSON) |
 //! |---|---|---|
 //! | `job` | a job appears or its state changes (`running`, `paused`, `done`, `failed`, `cancelled`) | `{"job", "state", "phase", "error"}` |
-//! | `phase` | a phase starts, finishes, or gets its coefficient table (the "coefficients announced" event) | `{"job", "idx", "phase", "started_ms", "finished_ms", "coefficients"}` |
+//! | `phase` | a phase starts, finishes, or gets its input from the previous barrier: the surrogate image or the coefficient table (the "coefficients announced" event) | `{"job", "idx", "phase", "started_ms", "finished_ms", "surrogate", "coefficients"}` |
 //! | `progress` | tasks done changed; at most once per [`PROGRESS_INTERVAL`] per job, always when a phase completes | `{"job", "tasks_done", "tasks_total", "phase_idx", "phase_done", "phase_total"}` |
 //!
 //! `?job=ID` restricts the stream to one job (404 when it does not exist). A fresh stream
-//! first reports every running or paused job (its state, started phases and progress); jobs
+//! first reports every running or paused job (its state, its phases that started or have an input, its progress); jobs
 //! that ended before the stream opened are not replayed. Comments are sent every
 //! [`KEEP_ALIVE`] so proxies keep the connection; the stream ends when the coordinator
 //! shuts down.
@@ -116,8 +116,22 @@ pub struct PhaseEvent {
     pub started_ms: Option<i64>,
     /// Completion (ms since the epoch).
     pub finished_ms: Option<i64>,
-    /// Content address of the coefficient table the phase produced or renders with.
+    /// Content address of the surrogate image the phase trains with.
+    pub surrogate: Option<String>,
+    /// Content address of the coefficient table the phase renders with (set by the train
+    /// barrier: this is the announcement of a solved table).
     pub coefficients: Option<String>,
+}
+
+impl PhaseEvent {
+    /// Whether there is anything to report yet (a phase that has not started and has no
+    /// input is only planned).
+    fn reportable(&self) -> bool {
+        self.started_ms.is_some()
+            || self.finished_ms.is_some()
+            || self.surrogate.is_some()
+            || self.coefficients.is_some()
+    }
 }
 
 /// Data of a `progress` event.
@@ -255,7 +269,7 @@ impl Poller {
         }
         for (idx, ph) in &view.phases {
             let before = prev.as_ref().and_then(|p| p.phases.get(idx));
-            if ph.started_ms.is_some() && before != Some(ph) {
+            if ph.reportable() && before != Some(ph) {
                 self.push("phase", ph);
             }
         }
@@ -283,7 +297,7 @@ impl Poller {
                 phases: view
                     .phases
                     .iter()
-                    .filter(|(_, p)| p.started_ms.is_some())
+                    .filter(|(_, p)| p.reportable())
                     .map(|(k, v)| (*k, v.clone()))
                     .collect(),
                 progress: progress_sent,
@@ -371,7 +385,7 @@ async fn read_jobs(
     let q = sql(
         store,
         &format!(
-            "SELECT job_id, idx, name, coefficients, started_ms, finished_ms FROM phases \
+            "SELECT job_id, idx, name, surrogate, coefficients, started_ms, finished_ms FROM phases \
              WHERE job_id IN ({}) ORDER BY job_id, idx",
             placeholders(ids.len())
         ),
@@ -392,6 +406,7 @@ async fn read_jobs(
                     phase: r.try_get("name")?,
                     started_ms: r.try_get("started_ms")?,
                     finished_ms: r.try_get("finished_ms")?,
+                    surrogate: r.try_get("surrogate")?,
                     coefficients: r.try_get("coefficients")?,
                 },
             );
