@@ -671,15 +671,29 @@ impl Store {
 
     /// The phases of a job in order, with their task counts and last accepted result.
     pub async fn phases(&self, job_id: i64) -> Result<Vec<PhaseRow>> {
-        let sql = self.sql(
+        self.phase_rows(job_id, None).await
+    }
+
+    /// One phase of a job (leases and uploads read it: one indexed row).
+    pub async fn phase(&self, job_id: i64, idx: i64) -> Result<Option<PhaseRow>> {
+        Ok(self.phase_rows(job_id, Some(idx)).await?.pop())
+    }
+
+    async fn phase_rows(&self, job_id: i64, idx: Option<i64>) -> Result<Vec<PhaseRow>> {
+        let filter = if idx.is_some() { " AND p.idx = ?" } else { "" };
+        let sql = self.sql(&format!(
             "SELECT p.idx AS idx, p.name AS name, p.spp AS spp, p.surrogate AS surrogate, \
                     p.coefficients AS coefficients, p.layout AS layout, p.barrier AS barrier, \
                     p.started_ms AS started_ms, p.finished_ms AS finished_ms, \
                     (SELECT MAX(t.done_ms) FROM tasks t WHERE t.job_id = p.job_id AND t.phase_idx = p.idx) AS last_ms, \
                     (SELECT COUNT(*) FROM tasks t WHERE t.job_id = p.job_id AND t.phase_idx = p.idx) AS tasks \
-             FROM phases p WHERE p.job_id = ? ORDER BY p.idx",
-        );
-        let rows = sqlx::query(&sql).bind(job_id).fetch_all(&self.pool).await?;
+             FROM phases p WHERE p.job_id = ?{filter} ORDER BY p.idx"
+        ));
+        let mut q = sqlx::query(&sql).bind(job_id);
+        if let Some(i) = idx {
+            q = q.bind(i);
+        }
+        let rows = q.fetch_all(&self.pool).await?;
         rows.iter()
             .map(|r| {
                 let name: String = r.try_get("name")?;
@@ -701,17 +715,7 @@ impl Store {
             .collect()
     }
 
-    /// One phase of a job.
-    pub async fn phase(&self, job_id: i64, idx: i64) -> Result<Option<PhaseRow>> {
-        Ok(self
-            .phases(job_id)
-            .await?
-            .into_iter()
-            .find(|p| p.idx == idx))
-    }
-
-    /// Records the layout signature of a train phase's cell blocks if none is recorded yet;
-    /// returns the recorded one.
+    /// Records the layout signature of a train phase's cell blocks if none is recorded yet.
     pub async fn set_phase_layout(&self, job_id: i64, idx: i64, layout: &str) -> Result<()> {
         let sql = self
             .sql("UPDATE phases SET layout = ? WHERE job_id = ? AND idx = ? AND layout IS NULL");

@@ -139,6 +139,9 @@ struct Inner {
 
 /// Most prepared jobs kept in memory.
 const PREPARED_CACHE: usize = 4;
+/// Most blobs (scenes, assets, surrogate images, coefficient tables) kept in memory; the
+/// cache is cleared when full (a job's blobs are simply fetched again).
+const BLOB_CACHE: usize = 64;
 
 /// Runs the worker until `shutdown` resolves (then finishes the tasks in hand) or a fatal
 /// error occurs.
@@ -367,7 +370,11 @@ impl Inner {
             return Err(format!("blob {hash} does not match its address"));
         }
         let b = Arc::new(bytes);
-        self.blobs.lock().await.insert(hash.to_owned(), b.clone());
+        let mut cache = self.blobs.lock().await;
+        if cache.len() >= BLOB_CACHE {
+            cache.clear();
+        }
+        cache.insert(hash.to_owned(), b.clone());
         Ok(b)
     }
 
