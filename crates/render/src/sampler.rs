@@ -65,7 +65,17 @@ pub struct Sampler {
     /// Dimension set (dimensions `4·set .. 4·set + 3`) held in `cache`; `u32::MAX` = none.
     cached_set: u32,
     cache: [f32; 4],
-    table: &'static Directions,
+    table: Table,
+}
+
+/// The shared direction table, debug-printed by name only.
+#[derive(Clone, Copy)]
+struct Table(&'static Directions);
+
+impl std::fmt::Debug for Table {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("<sobol directions>")
+    }
 }
 
 impl Sampler {
@@ -86,7 +96,7 @@ impl Sampler {
             dimension: 0,
             cached_set: u32::MAX,
             cache: [0.0; 4],
-            table: directions(),
+            table: Table(directions()),
         }
     }
 
@@ -147,7 +157,7 @@ impl Sampler {
         // `sobol_int4_rev(shuffled_rev_index, set)`, branch-free.
         let r = self.shuffled_rev_index;
         let mut sobol = Int4::from([0u32; 4]);
-        if let Some(dirs) = self.table.get(set as usize) {
+        if let Some(dirs) = self.table.0.get(set as usize) {
             for (k, d) in dirs.iter().enumerate() {
                 let mask = 0u32.wrapping_sub((r >> (31 - k)) & 1);
                 sobol ^= Int4::from(*d) & Int4::from([mask; 4]);
