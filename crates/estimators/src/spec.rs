@@ -45,6 +45,20 @@ impl CvColor {
     }
 }
 
+/// The base estimator of the controlled direct lighting, i.e. what a CV estimator computes
+/// with `α ≡ 0` (the correction `Σα − Σ_s Σ_k α_k λ_k(x_s)/p(x_s)` has zero mean for any
+/// base, see `render::integrator::cv`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CvBase {
+    /// The job's MIS heuristic (`mis`, power by default): `α ≡ 0` is exactly `path`.
+    #[default]
+    Mis,
+    /// The balance heuristic, whatever the job's `mis` [Hua eq. 6]: with the optimal `α`
+    /// the CV can cancel the integrand exactly [Hua eq. 19].
+    Balance,
+}
+
 /// Sample-index ranges of the phases of one job (see the module docs).
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct PhaseSamples {
@@ -146,8 +160,9 @@ impl OcvOptions {
 /// | `surrogate_spp` | u32 | 1 | samples per pixel of the surrogate image (only with `relative`; kept in the image) |
 /// | `grid_resolution` | `[nx, ny, nz]` \| null | null | cells per axis over the scene bounds; null = adaptive (≈ 16×16 pixels per cell) |
 /// | `max_light_components` | u32 | 1024 | more emitters than this are clustered by spatial proximity |
-/// | `ridge` | f64 | `1e-6` | relative Tikhonov regularisation of each cell system |
+/// | `ridge` | f64 | `1` | relative Tikhonov regularisation of each cell system: `A + ridge·diag(A)` shrinks `α` toward the base estimator (`path` with the default `base`); 1 halves an uncorrelated coefficient. Chosen by equal-spp measurements (`docs/bench/README.md`): the unshrunk fit loses to `path` on direct lighting |
 /// | `min_samples` | u64 | 16 | cells with fewer training samples fall back to the plain estimator |
+/// | `base` | `"mis"` \| `"balance"` | `"mis"` | base estimator (`α ≡ 0`): the job's MIS heuristic (= `path`) or balance [`CvBase`] |
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct CmsOptions {
@@ -167,6 +182,8 @@ pub struct CmsOptions {
     pub ridge: f64,
     /// Minimum training samples per cell.
     pub min_samples: u64,
+    /// Base estimator of the controlled direct lighting.
+    pub base: CvBase,
 }
 
 impl Default for CmsOptions {
@@ -178,8 +195,9 @@ impl Default for CmsOptions {
             surrogate_spp: 1,
             grid_resolution: None,
             max_light_components: 1024,
-            ridge: 1e-6,
+            ridge: 1.0,
             min_samples: 16,
+            base: CvBase::Mis,
         }
     }
 }
@@ -273,6 +291,15 @@ impl PhasedEstimator {
             }
             Self::PerLightCv(o) => PhaseSamples::split(spp, 0, o.training_spp),
             Self::OptimalMis(o) => PhaseSamples::split(spp, 0, o.training_spp),
+        }
+    }
+
+    /// Base estimator of the controlled direct lighting (`cms` option; the job's MIS
+    /// heuristic for the others).
+    pub fn base(&self) -> CvBase {
+        match self {
+            Self::Cms(o) => o.base,
+            Self::PerLightCv(_) | Self::OptimalMis(_) => CvBase::Mis,
         }
     }
 

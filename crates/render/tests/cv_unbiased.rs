@@ -92,6 +92,20 @@ fn cms_is_unbiased_on_veach_mis() {
     check("scenes/veach-mis/scene.json", cms_coarse(), 16, 16, 1024);
 }
 
+/// The unshrunk fit on the balance base (the paper's estimator [Hua eq. 17]).
+#[test]
+fn cms_balance_base_without_shrinkage_is_unbiased_on_colour_lamp() {
+    let e = Estimator::Cms(CmsOptions {
+        training_spp: 8,
+        grid_resolution: Some([4, 4, 4]),
+        min_samples: 8,
+        ridge: 1e-6,
+        base: render::integrator::cv::CvBase::Balance,
+        ..CmsOptions::default()
+    });
+    check("scenes/colour-lamp/scene.json", e, 16, 16, 1024);
+}
+
 #[test]
 fn cms_absolute_mono_is_unbiased_on_cornell_box() {
     let e = Estimator::Cms(CmsOptions {
@@ -128,11 +142,16 @@ fn optimal_mis_is_unbiased_on_veach_mis() {
     check("scenes/veach-mis/scene.json", e, 16, 16, 1024);
 }
 
-/// With `α ≡ 0` (no training phase) the CV bookkeeping must reproduce the balance-heuristic
-/// path tracer sample for sample (same sampler dimensions; only float summation order
-/// differs): checks every `F = f/p` the policy rebuilds from the vertex records.
+/// With `α ≡ 0` the CV bookkeeping must reproduce the path tracer with the same MIS
+/// heuristic sample for sample (same sampler dimensions; only float rounding and summation
+/// order differ): the default base is the job's heuristic (power, = `path`), `base:
+/// balance` the balance heuristic. `α ≡ 0` both without a training phase and with every
+/// trained cell falling back (`min_samples` unreachable), which exercises the surrogate,
+/// training and render phases.
 #[test]
-fn plain_cv_equals_balance_heuristic_path_per_pixel() {
+fn cms_with_zero_alpha_equals_path_with_the_same_heuristic() {
+    use render::MisHeuristic;
+    use render::integrator::cv::CvBase;
     for rel in [
         "scenes/veach-mis/scene.json",
         "scenes/many-lights/scene.json",
@@ -140,28 +159,37 @@ fn plain_cv_equals_balance_heuristic_path_per_pixel() {
     ] {
         let s = load(rel, 16, 12);
         let opts = RenderOptions::default();
-        let e = Estimator::Cms(CmsOptions {
-            training_spp: 0,
-            relative: false,
-            ..CmsOptions::default()
-        });
-        let (cv, report) = render(&s, e, 4, 9, None, opts);
-        assert_eq!(report.render_spp, 4);
-        let st = render::RenderSettings {
-            spp: 4,
-            seed: 9,
-            mis: render::MisHeuristic::Balance,
-            ..render::RenderSettings::from_scene(&s)
-        };
-        let rs = render::RenderScene::new(&s, &st).unwrap();
-        let (bal, _) = render::render_image(&rs, &st, &opts, &|_, _| {}).unwrap();
-        for (a, b) in cv.pixels.iter().zip(&bal.pixels) {
-            for c in 0..3 {
-                let (x, y) = (a.sum[c], b.sum[c]);
-                assert!(
-                    (x - y).abs() <= 1e-4 * (1.0 + x.abs().max(y.abs())),
-                    "{rel}: {x} vs {y}"
-                );
+        for (base, mis) in [
+            (CvBase::Mis, MisHeuristic::Power),
+            (CvBase::Balance, MisHeuristic::Balance),
+        ] {
+            for (training_spp, min_samples, spp) in [(0, 16, 4), (8, u64::MAX, 12)] {
+                let e = Estimator::Cms(CmsOptions {
+                    training_spp,
+                    min_samples,
+                    base,
+                    ..CmsOptions::default()
+                });
+                let (cv, report) = render(&s, e, spp, 9, None, opts);
+                assert_eq!(report.cells_solved, 0, "{report:?}");
+                let st = render::RenderSettings {
+                    spp,
+                    seed: 9,
+                    mis,
+                    ..render::RenderSettings::from_scene(&s)
+                };
+                let rs = render::RenderScene::new(&s, &st).unwrap();
+                let (p, _) = render::render_image(&rs, &st, &opts, &|_, _| {}).unwrap();
+                for (a, b) in cv.pixels.iter().zip(&p.pixels) {
+                    assert_eq!(a.count, b.count);
+                    for c in 0..3 {
+                        let (x, y) = (a.sum[c], b.sum[c]);
+                        assert!(
+                            (x - y).abs() <= 1e-4 * (1.0 + x.abs().max(y.abs())),
+                            "{rel} {base:?}: {x} vs {y}"
+                        );
+                    }
+                }
             }
         }
     }

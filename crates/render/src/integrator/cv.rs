@@ -25,9 +25,27 @@
 //! `β (Σα + Σ_s R_s (F_s − Σ_k α_k λ_k(x_s)/p(x_s)))` [Hua eq. 17, 27] with `β` the
 //! prefix throughput and `R_s = 1/q` the Russian-roulette factor of the BSDF sample (a
 //! BSDF sample whose path roulette ended is dropped, `R = 0`, which keeps the estimator
-//! unbiased). With `α ≡ 0` this is the balance-heuristic path tracer (the fallback); the
-//! job's `mis` setting does not apply to the controlled direct lighting (balance is what the
-//! CV theory needs [Hua §3.3.2]).
+//! unbiased).
+//!
+//! # Base estimator (`α ≡ 0`)
+//! The sample value is `F_s = w_s(x_s) f(x_s)/p_s(x_s)`, MIS-weighted with the **job's
+//! heuristic** (`mis`, power by default; option `base: "balance"` forces the balance
+//! heuristic, `F_s = f/p` [Hua eq. 6]). The CV correction `Σ_k α_k (1 − Σ_s R_s λ_k(x_s)/
+//! p(x_s))` has zero mean for any fixed `α` whatever the base weights, because the samples
+//! are one per technique and `p` is their sum: `E[Σ_s λ_k(x_s)/p(x_s)] = ∫ λ_k Σ_s p_s/p =
+//! 1`. So the estimator stays unbiased, and with `α ≡ 0` (fallback cells) it *is* the
+//! `path` estimator with the same heuristic.
+//!
+//! Training regresses each sample's `F_s` on its `λ_k(x_s)/p(x_s)` (one observation per
+//! sample, [Hua eq. 21, 23]). With MIS weights `w_s` summing to one, the per-point sum
+//! `Σ_s p_s (F_s − h)² = p (h − f/p)² + const(x)` for any `h = Σ α_k λ_k/p`, so the normal
+//! equations have the same expectation for the power and the balance base: the fitted `α`
+//! targets `α·λ ≈ f` either way. With the balance base a perfect fit cancels the integrand
+//! [Hua eq. 19]; with the power base it leaves the (small) residual `f (w_s/p_s − 1/p)`
+//! but the fallback is the stronger estimator. The regression minimises the variance of a
+//! *random* mixture; the deterministic one-sample-per-technique estimator differs by the
+//! spread of the techniques' expected contributions, which the fit also penalises (see
+//! `docs/bench/README.md`; the ridge shrinks `α` toward the base where the fit is weak).
 //!
 //! Cells are grid cells split by the dominant axis and sign of the shading normal
 //! ([`NORMAL_BINS`]), so differently oriented surfaces never share coefficients.
@@ -53,7 +71,9 @@ use std::time::Instant;
 use estimators::cell::{CellAccumulator, ColorMode, ComponentLayout, CvSample, training_weight};
 use estimators::perlight::MeanContributionAccumulator;
 use estimators::solve::{CellCoefficients, SolvePolicy, SolveStatus};
-pub use estimators::spec::{CvColor, MAX_GRID_CELLS, PhaseSamples, PhasedEstimator, TRAIN_TILE};
+pub use estimators::spec::{
+    CvBase, CvColor, MAX_GRID_CELLS, PhaseSamples, PhasedEstimator, TRAIN_TILE,
+};
 use estimators::surrogate::{PixelMoments, surrogate_image};
 use estimators::table::AccumulatorTable;
 use glam::{Vec2, Vec3};
@@ -361,6 +381,8 @@ struct CvContext<'a> {
     grid: Grid,
     layout: ComponentLayout,
     color: ColorMode,
+    /// MIS heuristic of the base estimator (`α ≡ 0`).
+    base: super::MisHeuristic,
 }
 
 /// Solved coefficients indexed by cell (grid cell or pixel); built by
@@ -369,13 +391,67 @@ struct CvContext<'a> {
 pub struct CoefficientTable {
     slot: Vec<u32>,
     coeffs: Vec<CellCoefficients>,
+    /// Per slot `stride` rows `[α_bsdf, α_partition 0, …, α_partition P−1]` (per channel)
+    /// when `P + 1 <= DENSE_ROW_MAX` (`stride = P + 1`), else empty (`stride = 0`) and the
+    /// terms come from [`CellCoefficients::cv_term`]'s binary search.
+    dense: Vec<[f64; 3]>,
+    stride: usize,
 }
+
+/// Largest dense coefficient row (components per cell) of a [`CoefficientTable`].
+const DENSE_ROW_MAX: usize = 257;
 
 impl CoefficientTable {
     #[inline]
-    fn get(&self, cell: u32) -> Option<&CellCoefficients> {
-        let s = *self.slot.get(cell as usize)?;
-        self.coeffs.get(s as usize)
+    fn get(&self, cell: u32) -> Option<(usize, &CellCoefficients)> {
+        let s = *self.slot.get(cell as usize)? as usize;
+        self.coeffs.get(s).map(|c| (s, c))
+    }
+
+    fn push(&mut self, co: &CellCoefficients) {
+        if self.stride > 0 {
+            self.dense.push(co.alpha_overlapping(0));
+            let start = self.dense.len();
+            self.dense.resize(start + self.stride - 1, [0.0; 3]);
+            for (id, a) in co.partitions() {
+                if let Some(d) = self.dense.get_mut(start + id as usize) {
+                    *d = a;
+                }
+            }
+        }
+        self.coeffs.push(co.clone());
+    }
+
+    /// `Σ_k α_k λ_k(x)/p(x)` of one sample (the BSDF component only with `bsdf`): the same
+    /// arithmetic as [`CellCoefficients::cv_term`], through a dense row when there is one.
+    #[inline]
+    fn term(&self, slot: usize, co: &CellCoefficients, s: &TechSample, bsdf: bool) -> [f64; 3] {
+        if self.stride == 0 {
+            let lb = [s.lambda_bsdf];
+            return co.cv_term(&s.cv(if bsdf { &lb } else { &[] }));
+        }
+        let mut t = [0.0f64; 3];
+        if s.pdf <= 0.0 || !s.pdf.is_finite() {
+            return t;
+        }
+        let inv_p = 1.0 / s.pdf;
+        let row = &self.dense[slot * self.stride..(slot + 1) * self.stride];
+        if bsdf && s.lambda_bsdf != 0.0 {
+            let r = s.lambda_bsdf * inv_p;
+            for (o, a) in t.iter_mut().zip(row[0]) {
+                *o += a * r;
+            }
+        }
+        if let Some((c, l)) = s.partition
+            && l != 0.0
+            && let Some(a) = row.get(1 + c as usize)
+        {
+            let r = l * inv_p;
+            for (o, a) in t.iter_mut().zip(a) {
+                *o += a * r;
+            }
+        }
+        t
     }
 }
 
@@ -452,7 +528,7 @@ enum Phase<'t> {
 /// One technique's sample in CV terms.
 #[derive(Clone, Copy, Debug)]
 struct TechSample {
-    /// `F = f/p` per channel.
+    /// `F = w f/p_tech` per channel (`w` the base MIS weight; `f/p` for balance).
     value: [f64; 3],
     /// Effective density `p` (1 for point masses).
     pdf: f64,
@@ -511,9 +587,12 @@ impl Policy<'_, '_> {
                     0.0
                 };
                 let p = pl + pb;
+                // Base value: the job's MIS weight against the BSDF density of the
+                // direction, exactly as `path` weighs it (zero when occluded anyway).
+                let w = f64::from(self.ctx.base.weight(lt.pdf_light, lt.pdf_bsdf));
                 let f = v3(lt.value);
                 Some(TechSample {
-                    value: f.map(|x| x / p),
+                    value: f.map(|x| x * w / pl),
                     pdf: if nee_only { pl } else { p },
                     partition: Some((c, pl * inv_s)),
                     lambda_bsdf: pb,
@@ -556,8 +635,9 @@ impl Policy<'_, '_> {
                         Some(l) if pl > 0.0 => comps.of(l).map(|(c, inv_s)| (c, pl * inv_s)),
                         _ => None,
                     };
+                    let w = f64::from(self.ctx.base.weight(b.pdf_bsdf, b.pdf_light));
                     Some(TechSample {
-                        value: fw.map(|x| x * pb / p),
+                        value: fw.map(|x| x * w),
                         pdf: p,
                         partition,
                         lambda_bsdf: pb,
@@ -631,31 +711,19 @@ impl VertexObserver for Policy<'_, '_> {
                 }
             }
             (Phase::Apply(table), Some(key)) => {
-                if let Some(co) = table.get(key) {
-                    let a = co.alpha_sum();
-                    out = a;
-                    match kind {
-                        Kind::PerLight => {
-                            for (i, s) in samples.iter().enumerate() {
-                                let Some(s) = s else { continue };
-                                let t = if i == 0 {
-                                    co.cv_term(&s.cv(&[]))
-                                } else {
-                                    [0.0; 3]
-                                };
-                                for c in 0..3 {
-                                    out[c] += s.scale * (s.value[c] - t[c]);
-                                }
-                            }
-                        }
-                        _ => {
-                            for s in samples.iter().flatten() {
-                                let lb = [s.lambda_bsdf];
-                                let t = co.cv_term(&s.cv(&lb));
-                                for c in 0..3 {
-                                    out[c] += s.scale * (s.value[c] - t[c]);
-                                }
-                            }
+                if let Some((slot, co)) = table.get(key) {
+                    out = co.alpha_sum();
+                    // `per_light_cv` controls the NEE sample only [Hua §7.2].
+                    let per_light = kind == Kind::PerLight;
+                    for (i, s) in samples.iter().enumerate() {
+                        let Some(s) = s else { continue };
+                        let t = if per_light && i == 1 {
+                            [0.0; 3]
+                        } else {
+                            table.term(slot, co, s, !per_light)
+                        };
+                        for c in 0..3 {
+                            out[c] += s.scale * (s.value[c] - t[c]);
                         }
                     }
                     let d = Vec3::new(
@@ -800,6 +868,10 @@ impl<'a> CvJob<'a> {
                 grid,
                 layout,
                 color: color.mode(),
+                base: match estimator.base() {
+                    CvBase::Mis => settings.mis,
+                    CvBase::Balance => super::MisHeuristic::Balance,
+                },
             },
             estimator,
             phases: estimator.phases(settings.spp),
@@ -911,9 +983,12 @@ impl<'a> CvJob<'a> {
             field: "coefficients",
             reason,
         };
+        let row = self.ctx.layout.partitions as usize + 1;
         let mut table = CoefficientTable {
             slot: vec![u32::MAX; self.table_len],
             coeffs: Vec::with_capacity(solved.len()),
+            dense: Vec::new(),
+            stride: if row <= DENSE_ROW_MAX { row } else { 0 },
         };
         for (&key, co) in solved {
             if co.layout() != self.ctx.layout || co.color() != self.ctx.color {
@@ -923,8 +998,12 @@ impl<'a> CvJob<'a> {
                 .ok()
                 .and_then(|k| table.slot.get_mut(k))
                 .ok_or(bad("cell key out of range"))?;
+            if is_zero(co) {
+                // α ≡ 0 gives the base estimate bit for bit: skip the per-sample CV terms.
+                continue;
+            }
             *slot = table.coeffs.len() as u32;
-            table.coeffs.push(co.clone());
+            table.push(co);
         }
         Ok(table)
     }
@@ -953,6 +1032,14 @@ impl<'a> CvJob<'a> {
             cell_id: t.cell_id,
         }
     }
+}
+
+/// Whether every coefficient is zero (a fallback cell or an all-zero fit).
+fn is_zero(co: &CellCoefficients) -> bool {
+    let k = co.layout().overlapping as usize;
+    co.is_fallback()
+        || (co.partitions().all(|(_, a)| a == [0.0; 3])
+            && (0..k).all(|j| co.alpha_overlapping(j) == [0.0; 3]))
 }
 
 /// The per-pixel moments of a film, as [`estimators::surrogate::surrogate_image`] takes them.
