@@ -401,3 +401,119 @@ fn cms_on_two_coordinators_sharing_one_postgres() {
     let farm = Client::new(&a.url()).download(id, "image.exr");
     assert!(farm == local_cv_exr(&scene, &est, &status.job));
 }
+
+/// The image of a `path` job of `spp` samples split by `spt`, assembled in-process.
+fn local_path_image(
+    scene: &serde_json::Value,
+    job: &ResolvedJob,
+    spp: u32,
+    spt: u32,
+) -> protocol::assemble::AssembledImage {
+    let j = ResolvedJob {
+        spp,
+        samples_per_task: spt,
+        ..*job
+    };
+    let p = worker::tile::Prepared::new(
+        &serde_json::to_vec(scene).expect("json"),
+        BTreeMap::new(),
+        &j,
+        &EstimatorSpec::default(),
+    )
+    .expect("prepare");
+    worker::tile::render_local(&p, &j).expect("render")
+}
+
+#[test]
+fn target_rel_mse_stops_after_the_first_round_that_meets_it() {
+    let db = TestDb::new(Backend::Sqlite);
+    let coord = Coordinator::start(db.config());
+    let client = Client::new(&coord.url());
+    let scene = scene_json("cornell-box/scene.json");
+    let mut s = serde_json::json!({
+        "scene": { "inline": scene },
+        "resolution": [32, 32],
+        "spp": 64,
+        "samples_per_task": 4,
+        "tile_size": 16,
+        "seed": 5,
+    });
+    // The target: the estimated error of the first 32 samples, so the farm must stop at or
+    // before round 8 of 16 (earlier if the noisy estimate dips below it sooner).
+    let resolved = ResolvedJob {
+        width: 32,
+        height: 32,
+        spp: 64,
+        seed: 5,
+        max_depth: 5,
+        rr_depth: 5,
+        hide_emitters: false,
+        tile_size: 16,
+        samples_per_task: 4,
+    };
+    let target = local_path_image(&scene, &resolved, 32, 4).estimated_rel_mse();
+    s["target_rel_mse"] = serde_json::json!(target);
+    let id = client.submit(&s);
+    let ws: Vec<Worker> = (0..2)
+        .map(|i| Worker::start(&coord.url(), &format!("w{i}")))
+        .collect();
+    let status = client.wait(id, Duration::from_secs(300));
+    assert_eq!(status.state, JobState::Done, "{status:?}");
+    for w in ws {
+        w.stop();
+    }
+    assert_eq!(status.job.max_depth, resolved.max_depth);
+    let stats: serde_json::Value =
+        serde_json::from_slice(&client.download(id, "stats.json")).expect("stats");
+    let spp = stats["spp"].as_f64().expect("spp") as u32;
+    assert!(spp % 4 == 0 && (4..=32).contains(&spp), "{stats}");
+    assert!(stats["estimated_rel_mse"].as_f64().expect("rel") <= target);
+    // The farm image is exactly the first spp/4 rounds, and every earlier round missed the
+    // target (the stop is the first round that meets it, whatever the workers did).
+    let local = local_path_image(&scene, &status.job, spp, 4);
+    let exr = coordinator::finish::encode_exr(&local).expect("exr");
+    assert!(
+        client.download(id, "image.exr") == exr,
+        "image differs from the first {spp} samples"
+    );
+    for earlier in (4..spp).step_by(4) {
+        let e = local_path_image(&scene, &status.job, earlier, 4).estimated_rel_mse();
+        assert!(
+            e > target,
+            "{earlier} spp already met the target ({e} <= {target})"
+        );
+    }
+}
+
+#[test]
+fn time_budget_ends_the_job_before_the_spp_cap() {
+    let db = TestDb::new(Backend::Sqlite);
+    let coord = Coordinator::start(db.config());
+    let client = Client::new(&coord.url());
+    let scene = scene_json("cornell-box/scene.json");
+    let id = client.submit(&serde_json::json!({
+        "scene": { "inline": scene },
+        "resolution": [16, 16],
+        "spp": 65536,
+        "samples_per_task": 4,
+        "tile_size": 16,
+        "time_budget_s": 1.0,
+    }));
+    let w = Worker::start(&coord.url(), "w");
+    let mut saw_eta = false;
+    let status = loop {
+        let st = client.status(id);
+        saw_eta |= st.eta_s.is_some();
+        if st.state != JobState::Running {
+            break st;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert_eq!(status.state, JobState::Done, "{status:?}");
+    w.stop();
+    assert!(saw_eta, "a running budget job has an ETA");
+    let stats: serde_json::Value =
+        serde_json::from_slice(&client.download(id, "stats.json")).expect("stats");
+    let spp = stats["spp"].as_f64().expect("spp");
+    assert!(spp >= 4.0 && spp < 65536.0 && spp % 4.0 == 0.0, "{stats}");
+}

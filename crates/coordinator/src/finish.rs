@@ -12,6 +12,14 @@
 //!   workers), then `image.exr` (layers beauty, variance, albedo, normal), `preview.png` and
 //!   `stats.json` are stored and the job is marked done.
 //!
+//! - **Rounds** (the render phase of a `time_budget_s` / `target_rel_mse` job, planned
+//!   round-major by [`protocol::job::plan_phases_ordered`]): each round — one sample range
+//!   of every tile — is checked **in order** once it and all earlier rounds are done
+//!   ([`check_rounds`]); after the first round whose image meets the error target (or whose
+//!   last result arrived after the time budget was spent) the remaining tasks are `skipped`
+//!   and the job finishes with the rounds so far. `spp` is the cap. For `target_rel_mse` the
+//!   stop round, hence the image, is a function of the job alone.
+//!
 //! Idempotent and restart-safe: barrier blobs and outputs are deterministic and inserted
 //! with `ON CONFLICT DO NOTHING`; the phase moves on (and the job turns `done`) only after
 //! they are stored, in a conditional update that exactly one caller wins. Whoever gets there
@@ -23,7 +31,7 @@ use std::time::Instant;
 use protocol::assemble::ImageAccumulator;
 use protocol::cv;
 use protocol::hash::sha256_hex;
-use protocol::job::{JobSpec, PhasedEstimator};
+use protocol::job::{JobSpec, PhasedEstimator, ResolvedJob};
 use protocol::lease::{BarrierStats, JobState, JobStats, PhaseKind, PhaseStats};
 use protocol::{TileResult, frame};
 
@@ -87,8 +95,121 @@ pub async fn advance_job(state: &AppState, job_id: i64) -> Result<Advance, Finis
     if phases.iter().any(|p| p.idx > active.idx) {
         barrier(state, &job, &active).await
     } else {
+        // An adaptive phase may have met its target before its last round (e.g. when the
+        // coordinator died before checking): decide that first, it changes the image.
+        let phases = if check_rounds(state, job_id).await? {
+            store.phases(job_id).await?
+        } else {
+            phases
+        };
         finish(state, &job, &phases).await
     }
+}
+
+/// Tiles of the render phase, i.e. tasks per round.
+fn tiles_per_round(r: &ResolvedJob) -> i64 {
+    i64::from(r.width.div_ceil(r.tile_size)) * i64::from(r.height.div_ceil(r.tile_size))
+}
+
+/// Checks the completed rounds of an adaptive job's render phase in order (see the module
+/// docs) and stops the phase after the first that meets the budget or target. Returns
+/// whether this call stopped it. A no-op for other jobs and phases.
+pub async fn check_rounds(state: &AppState, job_id: i64) -> Result<bool, FinishError> {
+    let store = &state.store;
+    let Some(job) = store.job_spec(job_id).await? else {
+        return Ok(false);
+    };
+    let spec: JobSpec = serde_json::from_str(&job.spec)
+        .map_err(|e| FinishError::Corrupt(format!("stored spec: {e}")))?;
+    if !spec.is_adaptive() {
+        return Ok(false);
+    }
+    let Some(current) = store.job(job_id).await? else {
+        return Ok(false);
+    };
+    let phases = store.phases(job_id).await?;
+    let Some(last) = phases.last() else {
+        return Ok(false);
+    };
+    if current.phase_idx != last.idx
+        || last.kind != PhaseKind::Render
+        || last.stop_round.is_some()
+        || !matches!(current.state, JobState::Running | JobState::Paused)
+    {
+        return Ok(false);
+    }
+    let per_round = tiles_per_round(&job.resolved).max(1);
+    let tasks = store.task_states(job_id, last.idx).await?;
+    let rounds = (tasks.len() as i64 + per_round - 1) / per_round;
+    // Rounds 0..=complete are done.
+    let mut complete = -1;
+    for r in 0..rounds {
+        let lo = (r * per_round) as usize;
+        let hi = (((r + 1) * per_round) as usize).min(tasks.len());
+        if tasks[lo..hi].iter().all(|t| t.state == "done") {
+            complete = r;
+        } else {
+            break;
+        }
+    }
+    for r in (last.rounds_checked + 1)..=complete {
+        if r == rounds - 1 {
+            // The last round ends the phase anyway.
+            break;
+        }
+        let end_seq = (r + 1) * per_round;
+        let stop = if let Some(budget) = spec.time_budget_s {
+            let round_done = tasks[..end_seq as usize]
+                .iter()
+                .filter_map(|t| t.done_ms)
+                .max()
+                .unwrap_or(0);
+            (round_done - job.created_ms) as f64 >= budget * 1000.0
+        } else if let Some(target) = spec.target_rel_mse {
+            rel_mse_through(state, &job, &phases, end_seq).await? <= target
+        } else {
+            false
+        };
+        if stop {
+            let stopped = store.stop_after_round(job_id, last.idx, r, end_seq).await?;
+            if stopped {
+                tracing::info!(round = r, rounds, "adaptive render phase stopped");
+            }
+            return Ok(stopped);
+        }
+        store.set_rounds_checked(job_id, last.idx, r).await?;
+    }
+    Ok(false)
+}
+
+/// Estimated relMSE of the image of every earlier phase plus the last phase's tasks
+/// `0..end_seq`, merged in canonical order.
+async fn rel_mse_through(
+    state: &AppState,
+    job: &JobRow,
+    phases: &[PhaseRow],
+    end_seq: i64,
+) -> Result<f64, FinishError> {
+    let mut blobs = Vec::new();
+    for (i, p) in phases.iter().enumerate() {
+        let mut b = state.store.phase_results(job.id, p.idx).await?;
+        if i + 1 == phases.len() {
+            b.truncate(end_seq.max(0) as usize);
+        }
+        blobs.extend(b);
+    }
+    let max_pixels = state.config.limits.max_pixels as usize;
+    let r = job.resolved;
+    tokio::task::spawn_blocking(move || {
+        let mut acc = ImageAccumulator::new(r.width, r.height);
+        for t in decode_all(&blobs, max_pixels)? {
+            acc.add(&t)
+                .map_err(|e| FinishError::Corrupt(e.to_string()))?;
+        }
+        Ok(acc.finish().estimated_rel_mse())
+    })
+    .await
+    .map_err(|e| FinishError::Image(e.to_string()))?
 }
 
 /// Finishes `job_id` if its last phase is complete (the reaper's and the upload's entry

@@ -167,8 +167,25 @@ pub struct PhaseRow {
     pub finished_ms: Option<i64>,
     /// Last accepted result.
     pub last_done_ms: Option<i64>,
-    /// Tasks in the phase.
+    /// Tasks in the phase (not counting tasks skipped by an early stop).
     pub tasks: i64,
+    /// Tasks done.
+    pub done: i64,
+    /// Last render round checked against the job's budget or target (−1: none).
+    pub rounds_checked: i64,
+    /// The round after which an adaptive phase stopped, if it did.
+    pub stop_round: Option<i64>,
+}
+
+/// A task's state as the round check needs it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct TaskState {
+    /// Canonical position in its phase.
+    pub seq: i64,
+    /// `pending`, `leased`, `done` or `skipped`.
+    pub state: String,
+    /// When its result was accepted.
+    pub done_ms: Option<i64>,
 }
 
 /// Store-wide counts for `/metrics`.
@@ -589,7 +606,7 @@ impl Store {
     /// Ids of running jobs whose active phase has no unfinished task (ready to finish).
     pub async fn finishable_jobs(&self) -> Result<Vec<i64>> {
         let sql = "SELECT j.id FROM jobs j WHERE j.state = 'running' AND NOT EXISTS \
-                   (SELECT 1 FROM tasks t WHERE t.job_id = j.id AND t.phase_idx = j.phase_idx AND t.state <> 'done')";
+                   (SELECT 1 FROM tasks t WHERE t.job_id = j.id AND t.phase_idx = j.phase_idx AND t.state NOT IN ('done', 'skipped'))";
         let rows = sqlx::query(sql).fetch_all(&self.pool).await?;
         rows.iter().map(|r| Ok(r.try_get("id")?)).collect()
     }
@@ -630,7 +647,7 @@ impl Store {
     /// Progress of a job's phase.
     pub async fn progress(&self, job_id: i64, phase_idx: i64) -> Result<Progress> {
         let sql = self.sql(
-            "SELECT COUNT(*) AS total, \
+            "SELECT CAST(COALESCE(SUM(CASE WHEN state = 'skipped' THEN 0 ELSE 1 END), 0) AS BIGINT) AS total, \
                     CAST(COALESCE(SUM(CASE WHEN state = 'done' THEN 1 ELSE 0 END), 0) AS BIGINT) AS done, \
                     CAST(COALESCE(SUM(attempt), 0) AS BIGINT) AS attempts \
              FROM tasks WHERE job_id = ? AND phase_idx = ?",
@@ -686,7 +703,9 @@ impl Store {
                     p.coefficients AS coefficients, p.layout AS layout, p.barrier AS barrier, \
                     p.started_ms AS started_ms, p.finished_ms AS finished_ms, \
                     (SELECT MAX(t.done_ms) FROM tasks t WHERE t.job_id = p.job_id AND t.phase_idx = p.idx) AS last_ms, \
-                    (SELECT COUNT(*) FROM tasks t WHERE t.job_id = p.job_id AND t.phase_idx = p.idx) AS tasks \
+                    (SELECT COUNT(*) FROM tasks t WHERE t.job_id = p.job_id AND t.phase_idx = p.idx AND t.state <> 'skipped') AS tasks, \
+                    (SELECT COUNT(*) FROM tasks t WHERE t.job_id = p.job_id AND t.phase_idx = p.idx AND t.state = 'done') AS done, \
+                    p.rounds_checked AS rounds_checked, p.stop_round AS stop_round \
              FROM phases p WHERE p.job_id = ?{filter} ORDER BY p.idx"
         ));
         let mut q = sqlx::query(&sql).bind(job_id);
@@ -710,6 +729,9 @@ impl Store {
                     finished_ms: r.try_get("finished_ms")?,
                     last_done_ms: r.try_get("last_ms")?,
                     tasks: r.try_get("tasks")?,
+                    done: r.try_get("done")?,
+                    rounds_checked: r.try_get("rounds_checked")?,
+                    stop_round: r.try_get("stop_round")?,
                 })
             })
             .collect()
@@ -780,6 +802,82 @@ impl Store {
         Ok(true)
     }
 
+    /// States of a phase's tasks in canonical order.
+    pub async fn task_states(&self, job_id: i64, idx: i64) -> Result<Vec<TaskState>> {
+        let sql = self.sql(
+            "SELECT seq, state, done_ms FROM tasks WHERE job_id = ? AND phase_idx = ? ORDER BY seq",
+        );
+        let rows = sqlx::query(&sql)
+            .bind(job_id)
+            .bind(idx)
+            .fetch_all(&self.pool)
+            .await?;
+        rows.iter()
+            .map(|r| {
+                Ok(TaskState {
+                    seq: r.try_get("seq")?,
+                    state: r.try_get("state")?,
+                    done_ms: r.try_get("done_ms")?,
+                })
+            })
+            .collect()
+    }
+
+    /// Records that rounds up to `round` were checked and did not stop the phase.
+    pub async fn set_rounds_checked(&self, job_id: i64, idx: i64, round: i64) -> Result<()> {
+        let sql = self.sql(
+            "UPDATE phases SET rounds_checked = ? WHERE job_id = ? AND idx = ? AND rounds_checked < ? AND stop_round IS NULL",
+        );
+        sqlx::query(&sql)
+            .bind(round)
+            .bind(job_id)
+            .bind(idx)
+            .bind(round)
+            .execute(&self.pool)
+            .await?;
+        Ok(())
+    }
+
+    /// Stops an adaptive phase after `round`: in one transaction, records the stop (only if
+    /// none is recorded) and marks every task from `first_skipped_seq` on `skipped` (leases in
+    /// hand become stale; results already accepted are kept but not merged). Returns whether
+    /// this call stopped it.
+    pub async fn stop_after_round(
+        &self,
+        job_id: i64,
+        idx: i64,
+        round: i64,
+        first_skipped_seq: i64,
+    ) -> Result<bool> {
+        let mut tx = self.pool.begin().await?;
+        let sql = self.sql(
+            "UPDATE phases SET stop_round = ?, rounds_checked = ? WHERE job_id = ? AND idx = ? AND stop_round IS NULL",
+        );
+        let r = sqlx::query(&sql)
+            .bind(round)
+            .bind(round)
+            .bind(job_id)
+            .bind(idx)
+            .execute(&mut *tx)
+            .await?;
+        if r.rows_affected() != 1 {
+            tx.rollback().await?;
+            return Ok(false);
+        }
+        let sql = self.sql(
+            "UPDATE tasks SET state = 'skipped', worker_id = NULL, lease_expires_ms = NULL \
+             WHERE job_id = ? AND phase_idx = ? AND seq >= ? AND state <> 'skipped'",
+        );
+        sqlx::query(&sql)
+            .bind(job_id)
+            .bind(idx)
+            .bind(first_skipped_seq)
+            .execute(&mut *tx)
+            .await?;
+        tx.commit().await?;
+        Ok(true)
+    }
+
     /// Marks the last phase of a finished job finished (no-op when already marked).
     pub async fn finish_phase(&self, job_id: i64, idx: i64) -> Result<()> {
         let sql = self.sql(
@@ -808,7 +906,7 @@ impl Store {
     pub async fn phase_results(&self, job_id: i64, phase_idx: i64) -> Result<Vec<Vec<u8>>> {
         let sql = self.sql(
             "SELECT r.data AS data FROM tasks t JOIN results r ON r.task_id = t.id AND r.attempt = t.done_attempt \
-             WHERE t.job_id = ? AND t.phase_idx = ? ORDER BY t.seq",
+             WHERE t.job_id = ? AND t.phase_idx = ? AND t.state = 'done' ORDER BY t.seq",
         );
         let rows = sqlx::query(&sql)
             .bind(job_id)

@@ -9,8 +9,8 @@
 //! | `assets` | map name → sha256 | `{}` | asset files the scene names (meshes, textures), uploaded with `PUT /v1/assets/{sha256}` |
 //! | `estimator` | [`EstimatorSpec`] | `{ "kind": "path" }` | which estimator renders the job, with its options (`path`, `ocv`, `cms`, `per_light_cv`, `optimal_mis`) |
 //! | `spp` | int | 16 | samples per pixel |
-//! | `time_budget_s` | seconds | — | alternative budget (not yet supported) |
-//! | `target_rel_mse` | number | — | alternative budget (not yet supported) |
+//! | `time_budget_s` | seconds | — | stop adding render rounds once this much time has passed since submission (`spp` is the cap) |
+//! | `target_rel_mse` | number | — | stop adding render rounds once the estimated relMSE is at most this (`spp` is the cap) |
 //! | `resolution` | `[w, h]` | scene's film | output size override |
 //! | `max_depth` | int | scene's | path-length override (Mitsuba meaning, −1 = unbounded) |
 //! | `seed` | int | 0 | sampler seed: same spec + seed ⇒ same image bits |
@@ -56,10 +56,10 @@ pub struct JobSpec {
     /// Samples per pixel.
     #[serde(default = "default_spp")]
     pub spp: u32,
-    /// Wall-clock budget in seconds (not yet supported: rejected with `unsupported`).
+    /// Wall-clock budget in seconds: no render round starts being counted after it is spent.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub time_budget_s: Option<f64>,
-    /// Keep adding sample batches until the estimated relMSE is below this (not yet supported).
+    /// Keep adding render rounds until the estimated relMSE is at most this.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub target_rel_mse: Option<f64>,
     /// Output resolution `[width, height]`; the scene's film when absent.
@@ -323,6 +323,14 @@ pub struct ResolvedJob {
 }
 
 impl JobSpec {
+    /// Whether the job's render phase is adaptive (a time budget or an error target): its
+    /// tasks then come in **rounds** of `samples_per_task` over all tiles
+    /// ([`plan_phases_ordered`]) and the coordinator stops after the first round that meets
+    /// the budget or target.
+    pub fn is_adaptive(&self) -> bool {
+        self.time_budget_s.is_some() || self.target_rel_mse.is_some()
+    }
+
     /// Checks every field against `limits` and resolves the job against the scene's own
     /// film and integrator settings. Errors name the field.
     pub fn resolve(
@@ -340,16 +348,21 @@ impl JobSpec {
             ));
         }
         self.estimator.validate()?;
-        if self.time_budget_s.is_some() {
-            return Err(SpecError::unsupported(
-                "time_budget_s",
-                "time budgets are not yet supported; use spp",
-            ));
+        for (field, v) in [
+            ("time_budget_s", self.time_budget_s),
+            ("target_rel_mse", self.target_rel_mse),
+        ] {
+            if v.is_some_and(|v| !(v > 0.0 && v.is_finite())) {
+                return Err(SpecError::invalid(
+                    field,
+                    "must be a positive finite number",
+                ));
+            }
         }
-        if self.target_rel_mse.is_some() {
-            return Err(SpecError::unsupported(
+        if self.time_budget_s.is_some() && self.target_rel_mse.is_some() {
+            return Err(SpecError::invalid(
                 "target_rel_mse",
-                "target_rel_mse is not yet supported; use spp",
+                "give either time_budget_s or target_rel_mse, not both",
             ));
         }
         for (name, hash) in &self.assets {
@@ -562,15 +575,41 @@ pub fn plan_task_count(job: &ResolvedJob, est: &EstimatorSpec) -> u64 {
 ///   training range, one task per tile), `render` (tiles of `tile_size`, split by
 ///   `samples_per_task`). Phases without samples are left out.
 pub fn plan_phases(job: &ResolvedJob, est: &EstimatorSpec) -> Vec<PhasePlan> {
-    phase_shapes(job, est)
+    plan_phases_ordered(job, est, false)
+}
+
+/// [`plan_phases`] with the last phase (render) in **round-major** order when `rounds` is
+/// set: round `r` (the `r`-th sample range of every tile) is tasks `r·T .. (r+1)·T` for `T`
+/// tiles, tiles row-major within a round. Each pixel still receives its sample ranges in
+/// ascending order, so merging in `seq` order gives the same bits as the tile-major plan.
+pub fn plan_phases_ordered(job: &ResolvedJob, est: &EstimatorSpec, rounds: bool) -> Vec<PhasePlan> {
+    let shapes = phase_shapes(job, est);
+    let last = shapes.len().saturating_sub(1);
+    shapes
         .into_iter()
-        .map(|(kind, tile, samples, spt)| PhasePlan {
-            kind,
-            tasks: plan_range(job, tile, samples.clone(), spt),
-            samples,
-            tile_size: tile,
+        .enumerate()
+        .map(|(i, (kind, tile, samples, spt))| {
+            let mut tasks = plan_range(job, tile, samples.clone(), spt);
+            if rounds && i == last {
+                // Stable sort by sample range start: rounds in order, tiles row-major within.
+                tasks.sort_by_key(|t| t.sample_start);
+                for (seq, t) in tasks.iter_mut().enumerate() {
+                    t.seq = seq as u32;
+                }
+            }
+            PhasePlan {
+                kind,
+                tasks,
+                samples,
+                tile_size: tile,
+            }
         })
         .collect()
+}
+
+/// Tiles of a phase plan (tasks per round).
+pub fn tiles_per_round(plan: &PhasePlan, job: &ResolvedJob) -> u64 {
+    tiles_of(job, plan.tile_size)
 }
 
 fn plan_range(job: &ResolvedJob, tile: u32, samples: Range<u32>, per_task: u32) -> Vec<TaskPlan> {
@@ -698,6 +737,51 @@ mod tests {
             assert!(s.estimator.is_supported());
             s.resolve(&scene(), &Limits::default()).unwrap();
         }
+    }
+
+    #[test]
+    fn budgets_are_validated_and_rounds_cover_the_same_samples() {
+        let l = Limits::default();
+        for (extra, field) in [
+            (serde_json::json!({"time_budget_s": -1.0}), "time_budget_s"),
+            (serde_json::json!({"target_rel_mse": 0.0}), "target_rel_mse"),
+            (
+                serde_json::json!({"time_budget_s": 1.0, "target_rel_mse": 0.1}),
+                "target_rel_mse",
+            ),
+        ] {
+            let e = spec(extra).unwrap().resolve(&scene(), &l).unwrap_err();
+            assert_eq!(e.field, field);
+        }
+        let s = spec(
+            serde_json::json!({"target_rel_mse": 0.01, "tile_size": 16, "spp": 10,
+                                        "samples_per_task": 4}),
+        )
+        .unwrap();
+        assert!(s.is_adaptive());
+        let r = s.resolve(&scene(), &l).unwrap();
+        let tile_major = plan_phases(&r, &s.estimator);
+        let rounds = plan_phases_ordered(&r, &s.estimator, true);
+        let t = tiles_per_round(&rounds[0], &r) as usize;
+        assert_eq!(t, 6);
+        for (i, task) in rounds[0].tasks.iter().enumerate() {
+            assert_eq!(task.seq as usize, i);
+            assert_eq!(task.sample_start, 4 * (i / t) as u32);
+        }
+        // The same tasks, each pixel's ranges still ascending in seq order.
+        let mut a: Vec<_> = tile_major[0]
+            .tasks
+            .iter()
+            .map(|t| (t.rect.x0, t.rect.y0, t.sample_start))
+            .collect();
+        let mut b: Vec<_> = rounds[0]
+            .tasks
+            .iter()
+            .map(|t| (t.rect.x0, t.rect.y0, t.sample_start))
+            .collect();
+        a.sort_unstable();
+        b.sort_unstable();
+        assert_eq!(a, b);
     }
 
     #[test]

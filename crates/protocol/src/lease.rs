@@ -219,6 +219,10 @@ pub struct JobStatus {
     /// Why the job failed, if it did.
     #[serde(default)]
     pub error: Option<String>,
+    /// Estimated seconds to completion of a running job (from the tasks done so far; capped
+    /// by what is left of a time budget); absent when unknown or finished.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub eta_s: Option<f64>,
 }
 
 /// `stats.json` of a finished job.

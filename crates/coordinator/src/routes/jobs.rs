@@ -20,7 +20,7 @@ use axum::response::IntoResponse;
 use axum::routing::{get, post};
 use axum::{Json, Router};
 use protocol::hash::{is_content_address, sha256_hex};
-use protocol::job::{SceneSource, plan_phases};
+use protocol::job::{SceneSource, plan_phases_ordered};
 use protocol::lease::{JobState, JobStatus, PhaseKind, SubmitResponse};
 use protocol::{ApiError, JobSpec};
 use scene::SceneDesc;
@@ -142,7 +142,7 @@ async fn submit(
     stored.scene = SceneSource::Bundle(scene_hash.clone());
     let stored_json =
         serde_json::to_string(&stored).map_err(|e| AppError::Internal(e.to_string()))?;
-    let plan = plan_phases(&resolved, &spec.estimator);
+    let plan = plan_phases_ordered(&resolved, &spec.estimator, spec.is_adaptive());
     let first_tasks = plan.first().map_or(0, |p| p.tasks.len());
     let job_id = st
         .store
@@ -236,6 +236,7 @@ fn job_status(
     job: &JobRow,
     phase: PhaseKind,
     progress: crate::store::Progress,
+    eta_s: Option<f64>,
 ) -> AppResult<JobStatus> {
     Ok(JobStatus {
         job_id: job.id,
@@ -247,6 +248,7 @@ fn job_status(
         tasks_done: progress.done.max(0) as u64,
         job: job.resolved,
         error: job.error.clone(),
+        eta_s,
     })
 }
 
@@ -269,12 +271,39 @@ async fn reload(st: &AppState, id: i64) -> AppResult<JobRow> {
 /// The API status of a job row, with its current phase's progress.
 async fn status_of(st: &AppState, job: JobRow) -> AppResult<JobStatus> {
     let progress = st.store.progress(job.id, job.phase_idx).await?;
-    let phase = st
-        .store
-        .phase(job.id, job.phase_idx)
-        .await?
+    let phases = st.store.phases(job.id).await?;
+    let phase = phases
+        .iter()
+        .find(|p| p.idx == job.phase_idx)
         .map_or(PhaseKind::Render, |p| p.kind);
-    job_status(&job, phase, progress)
+    let eta = eta_s(&st.store, &job, &phases).await?;
+    job_status(&job, phase, progress, eta)
+}
+
+/// Seconds to completion of a running job: the time so far scaled by the tasks left over
+/// the tasks done (all phases), capped by what is left of a time budget.
+async fn eta_s(
+    store: &crate::store::Store,
+    job: &JobRow,
+    phases: &[crate::store::PhaseRow],
+) -> AppResult<Option<f64>> {
+    if !matches!(job.state, JobState::Running | JobState::Paused) {
+        return Ok(None);
+    }
+    let elapsed = (crate::store::now_ms() - job.created_ms).max(0) as f64 / 1000.0;
+    let (done, total) = phases
+        .iter()
+        .fold((0i64, 0i64), |(d, t), p| (d + p.done, t + p.tasks));
+    let mut eta = (done > 0).then(|| elapsed * (total - done).max(0) as f64 / done as f64);
+    let spec = store.job_spec(job.id).await?;
+    let budget = spec
+        .and_then(|j| serde_json::from_str::<JobSpec>(&j.spec).ok())
+        .and_then(|s| s.time_budget_s);
+    if let Some(b) = budget {
+        let left = (b - elapsed).max(0.0);
+        eta = Some(eta.map_or(left, |e| e.min(left)));
+    }
+    Ok(eta)
 }
 
 async fn status(

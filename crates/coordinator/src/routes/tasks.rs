@@ -147,17 +147,29 @@ async fn upload(
                     .await?;
             }
             let progress = st.store.progress(task.job_id, task.phase_idx).await?;
-            if progress.done == progress.total {
-                // Finish in the background: the upload is already durable, and should the
-                // coordinator die first the reaper finishes the job after the restart.
-                let st2 = st.clone();
-                let job = task.job_id;
-                tokio::spawn(async move {
-                    if let Err(e) = crate::finish::finish_job(&st2, job).await {
-                        tracing::error!(job, error = %e, "finishing failed");
+            // Check adaptive rounds and finish in the background: the upload is already
+            // durable, and should the coordinator die first the reaper (or the next upload)
+            // does it after the restart.
+            let st2 = st.clone();
+            let job = task.job_id;
+            let complete = progress.done == progress.total;
+            tokio::spawn(async move {
+                let stopped = match crate::finish::check_rounds(&st2, job).await {
+                    Ok(s) => s,
+                    Err(e) => {
+                        tracing::error!(job, error = %e, "round check failed");
+                        false
                     }
-                });
-            }
+                };
+                if stopped {
+                    st2.work_available.notify_waiters();
+                }
+                if (stopped || complete)
+                    && let Err(e) = crate::finish::advance_job(&st2, job).await
+                {
+                    tracing::error!(job, error = %e, "finishing failed");
+                }
+            });
             Ok(Json(UploadResponse { duplicate: false }))
         }
         UploadOutcome::Duplicate => Ok(Json(UploadResponse { duplicate: true })),
