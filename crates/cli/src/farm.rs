@@ -102,9 +102,18 @@ pub struct SubmitArgs {
     /// Sample range length per task (splits tiles in time) [default: spp].
     #[arg(long, env = "CVFARM_SAMPLES_PER_TASK")]
     pub samples_per_task: Option<u32>,
-    /// Samples per pixel [default: 16].
+    /// Samples per pixel [default: 16]; the cap of a --time-budget or --target-rel-mse job.
     #[arg(long, env = "CVFARM_SPP")]
     pub spp: Option<u32>,
+    /// Stop adding render rounds (of --samples-per-task) once this many seconds have passed
+    /// since submission.
+    #[arg(long, env = "CVFARM_TIME_BUDGET", value_name = "SECONDS",
+          value_parser = crate::render_cmd::parse_budget, conflicts_with = "target_rel_mse")]
+    pub time_budget: Option<f64>,
+    /// Stop adding render rounds once the estimated relMSE is at most this.
+    #[arg(long, env = "CVFARM_TARGET_REL_MSE", value_name = "X",
+          value_parser = crate::render_cmd::parse_budget)]
+    pub target_rel_mse: Option<f64>,
     /// Max path segments incl. the camera ray (-1 = unbounded) [default: the scene's].
     #[arg(long, env = "CVFARM_MAX_DEPTH", allow_negative_numbers = true)]
     pub max_depth: Option<i32>,
@@ -341,6 +350,12 @@ pub fn submit(args: &SubmitArgs) -> Result<ExitCode> {
         if let Some(spp) = args.spp {
             spec["spp"] = spp.into();
         }
+        if let Some(t) = args.time_budget {
+            spec["time_budget_s"] = t.into();
+        }
+        if let Some(t) = args.target_rel_mse {
+            spec["target_rel_mse"] = t.into();
+        }
         if let Some(n) = args.samples_per_task {
             spec["samples_per_task"] = n.into();
         }
@@ -415,6 +430,9 @@ async fn wait(api: &Api, id: i64) -> Result<JobStatus> {
             .json()
             .await?;
         bar.set_prefix(status.phase.as_str());
+        if let Some(eta) = status.eta_s {
+            bar.set_message(format!("ETA {eta:.0} s"));
+        }
         bar.set_length(status.tasks_total);
         bar.set_position(status.tasks_done);
         if !matches!(status.state, JobState::Running | JobState::Paused) {

@@ -6,8 +6,9 @@
 //! Migrations are embedded per backend (`migrations/sqlite`, `migrations/postgres`).
 //!
 //! Invariants kept by the queries (each is a single atomic statement or one transaction):
-//! - a task is `pending`, `leased` (to one worker, with an attempt number and an expiry) or
-//!   `done` (with exactly one stored result, keyed by the accepted attempt);
+//! - a task is `pending`, `leased` (to one worker, with an attempt number and an expiry),
+//!   `done` (with exactly one stored result, keyed by the accepted attempt) or `skipped` (an
+//!   adaptive render phase stopped before its round; never leased again, never merged);
 //! - each lease increments the attempt, so an upload naming an older attempt is stale;
 //! - a result is accepted only from the worker holding the current attempt's lease, and
 //!   re-uploading an accepted (task, attempt) is a no-op.
