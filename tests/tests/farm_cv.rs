@@ -487,7 +487,7 @@ fn target_rel_mse_stops_after_the_first_round_that_meets_it() {
     let stats: serde_json::Value =
         serde_json::from_slice(&client.download(id, "stats.json")).expect("stats");
     let spp = stats["spp"].as_f64().expect("spp") as u32;
-    assert!(spp % 4 == 0 && (4..=32).contains(&spp), "{stats}");
+    assert!(spp.is_multiple_of(4) && (4..=32).contains(&spp), "{stats}");
     assert!(stats["estimated_rel_mse"].as_f64().expect("rel") <= target);
     // The farm image is exactly the first spp/4 rounds, and every earlier round missed the
     // target (the stop is the first round that meets it, whatever the workers did).
@@ -536,5 +536,5 @@ fn time_budget_ends_the_job_before_the_spp_cap() {
     let stats: serde_json::Value =
         serde_json::from_slice(&client.download(id, "stats.json")).expect("stats");
     let spp = stats["spp"].as_f64().expect("spp");
-    assert!(spp >= 4.0 && spp < 65536.0 && spp % 4.0 == 0.0, "{stats}");
+    assert!((4.0..65536.0).contains(&spp) && spp % 4.0 == 0.0, "{stats}");
 }
