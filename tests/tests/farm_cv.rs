@@ -446,8 +446,17 @@ fn local_path_image(
 }
 
 #[test]
-fn target_rel_mse_stops_after_the_first_round_that_meets_it() {
-    let db = TestDb::new(Backend::Sqlite);
+fn target_rel_mse_stops_after_the_first_round_that_meets_it_sqlite() {
+    target_rel_mse_stops(Backend::Sqlite);
+}
+
+#[test]
+fn target_rel_mse_stops_after_the_first_round_that_meets_it_postgres() {
+    target_rel_mse_stops(Backend::Postgres);
+}
+
+fn target_rel_mse_stops(backend: Backend) {
+    let db = TestDb::new(backend);
     let coord = Coordinator::start(db.config());
     let client = Client::new(&coord.url());
     let scene = scene_json("cornell-box/scene.json");

@@ -17,7 +17,8 @@
 //!    renders, so lease and upload round trips overlap rendering. A heartbeat answered 409 means the lease was lost (expired and
 //!    re-leased, or the job was cancelled): the result is dropped, not uploaded.
 //! 5. **Upload** `PUT /v1/tasks/{id}/result?attempt=N`, retried on network errors (the
-//!    coordinator makes a repeated upload of an accepted attempt a no-op).
+//!    coordinator makes a repeated upload of an accepted attempt a no-op); a result the
+//!    coordinator refuses (4xx other than 409) is reported as a failed attempt.
 //! 6. **Shutdown** (the future passed to [`run`] resolves, e.g. on SIGTERM/ctrl-c): no new
 //!    lease is taken; a task being rendered is finished and uploaded; a lease in hand that
 //!    has not started rendering (or arrives after the signal) is released.
@@ -534,10 +535,12 @@ impl Inner {
                     return;
                 }
                 Ok(r) if r.status().is_client_error() => {
+                    // The coordinator refused the result itself (e.g. 422 invalid_cells):
+                    // report the attempt failed so the task is redone now, not after the
+                    // lease expires (the retry cap ends a job that keeps failing).
                     let body = error_text(r).await;
                     tracing::error!(body = %body, "upload rejected");
-                    self.counters.failed.fetch_add(1, Ordering::Relaxed);
-                    return;
+                    return self.fail(l, &format!("upload rejected: {body}")).await;
                 }
                 Ok(r) => tracing::warn!(status = %r.status(), "upload failed; retrying"),
                 Err(e) => tracing::warn!(error = %e, "upload failed; retrying"),
