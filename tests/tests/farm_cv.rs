@@ -331,10 +331,52 @@ fn bad_train_uploads_are_4xx_json_and_the_task_is_redone() {
             .expect("count"),
         0
     );
-    // The task is still the fake's lease; it gives up and the task is leased again.
+    // The task is still the fake's lease: its genuine result is accepted and fixes the
+    // job's cell layout.
+    let r = fake.upload(&l, good.encode());
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    // The other training tile, with every record claiming one more light component: a
+    // well-formed block of another layout than the accepted one.
+    let l2 = fake.lease();
+    assert_eq!(l2.phase, PhaseKind::Train);
+    let header2 = protocol::frame::TileHeader {
+        task_id: l2.task_id,
+        attempt: l2.attempt,
+        rect: l2.rect,
+        ..header
+    };
+    let mut other = prepared
+        .render_task(header2, PhaseKind::Train, &Default::default())
+        .expect("train tile");
+    let data = &mut other.cells[0].data;
+    let records = u32::from_le_bytes(data[8..12].try_into().expect("count")) as usize;
+    assert!(records > 0);
+    let mut at = 12;
+    for _ in 0..records {
+        let len = u32::from_le_bytes(data[at + 8..at + 12].try_into().expect("len")) as usize;
+        // Record: magic 4, version 2, colour 1, reserved 1, then `u32` partitions.
+        let p = at + 12 + 8;
+        let partitions = u32::from_le_bytes(data[p..p + 4].try_into().expect("P"));
+        data[p..p + 4].copy_from_slice(&(partitions + 1).to_le_bytes());
+        at += 12 + len;
+    }
+    let r = fake.upload(&l2, other.encode());
+    assert_eq!(r.status, 422, "{}", String::from_utf8_lossy(&r.body));
+    let e = r.api_error();
+    assert!(
+        e.code == "invalid_cells" && e.message.contains("layout"),
+        "{e:?}"
+    );
+    // It gives up on that task (nothing of it was stored) and a real worker redoes it.
+    assert_eq!(
+        coord
+            .block_on(coord.state.store.result_count(id))
+            .expect("count"),
+        1
+    );
     let r = fake.c.request(
         "POST",
-        &format!("/v1/tasks/{}/fail?attempt={}", l.task_id, l.attempt),
+        &format!("/v1/tasks/{}/fail?attempt={}", l2.task_id, l2.attempt),
         Some(b"bad cells".to_vec()),
     );
     assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
@@ -343,10 +385,10 @@ fn bad_train_uploads_are_4xx_json_and_the_task_is_redone() {
     assert_eq!(status.state, JobState::Done, "{status:?}");
     w.stop();
     let t = coord
-        .block_on(coord.state.store.task(l.task_id))
+        .block_on(coord.state.store.task(l2.task_id))
         .expect("store")
         .expect("task");
-    assert!(t.done_attempt.expect("done") > i64::from(l.attempt));
+    assert!(t.done_attempt.expect("done") > i64::from(l2.attempt));
     assert!(client.download(id, "image.exr") == local_cv_exr(&scene, &est, &status.job));
 }
 
