@@ -5,14 +5,32 @@
 //!    (lease + upload round trips) and the finishing time (assembly of every block).
 //! 2. **Farm overhead**: the same job rendered in-process (`render_image`, 2 threads) and by
 //!    a farm of 2 real workers × 1 slot on loopback; reports both wall times and the overhead.
+//! 3. **Merge + solve throughput** (DESIGN §8, "coordinator merge/solve throughput"): the
+//!    coordinator's barrier work on realistic training accumulators. `--sim-workers` threads
+//!    each produce the tables of their share of `--tiles` tiles (`--cells` cells per tile,
+//!    half of them shared with the next tile as neighbouring tiles share world-space cells;
+//!    layout 8 light partitions + 1 BSDF component, RGB, `--samples` training samples per
+//!    cell) and encode them as a worker uploads them. Then timed, as the coordinator does it:
+//!    decode + merge of every tile table in canonical order
+//!    (`AccumulatorTable::decode` / `merge`), and `AccumulatorTable::solve` on 1 and 2
+//!    threads. Reports merged cell records/s and solved cells/s as a markdown table.
+//! 4. **A real `cms` job** through a real coordinator and `--workers` real workers on
+//!    loopback (`--scene`, default `many-lights`, `--res`, `--spp`): the coordinator's own
+//!    train barrier (decode, validate, merge in canonical order, solve on all cores, encode),
+//!    read from `stats.json`, as cells/s; plus every phase's wall time.
 //!
 //! ```text
 //! cargo run --release -p e2e --bin farm_bench -- [--pg] [--sim-workers 16] [--tasks 1024]
+//!     [--tiles 256] [--cells 300] [--samples 64] [--workers 2] [--res 256] [--spp 32]
+//!     [--scene many-lights] [--only queue|merge|cms|overhead]
 //! ```
 
 use std::time::{Duration, Instant};
 
 use e2e::{Backend, Client, Coordinator, ENROLL_TOKEN, TestDb, Worker, scene_json};
+use estimators::cell::{CellAccumulator, ColorMode, ComponentLayout, CvSample};
+use estimators::solve::{SolvePolicy, SolveStatus};
+use estimators::table::AccumulatorTable;
 use protocol::TileResult;
 use protocol::frame::{PixelRecord, TileHeader};
 use protocol::lease::{JobState, TaskLease};
@@ -170,12 +188,337 @@ fn overhead(backend: Backend) {
     );
 }
 
+/// A small deterministic generator (xorshift64*), so the tables are the same every run.
+struct Rng(u64);
+
+impl Rng {
+    fn next_f64(&mut self) -> f64 {
+        self.0 ^= self.0 >> 12;
+        self.0 ^= self.0 << 25;
+        self.0 ^= self.0 >> 27;
+        (self.0.wrapping_mul(0x2545_f491_4f6c_dd1d) >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
+/// Light partitions and overlapping (BSDF) components of the simulated cells.
+const PARTITIONS: u32 = 8;
+const OVERLAPPING: u32 = 1;
+
+/// The training table a worker uploads for tile `tile`: `cells` cells with keys
+/// `tile·cells/2 ..`, each with `samples` samples spread over the lights (one partition
+/// per sample, as for light sampling) and a BSDF component.
+fn tile_table(tile: usize, cells: usize, samples: usize) -> Vec<u8> {
+    let layout = ComponentLayout::new(PARTITIONS, OVERLAPPING).expect("layout");
+    let mut rng =
+        Rng(0x9e37_79b9_7f4a_7c15 ^ (tile as u64 + 1).wrapping_mul(0xbf58_476d_1ce4_e5b9));
+    let first = (tile * cells / 2) as u64;
+    let mut table = std::collections::BTreeMap::new();
+    for c in 0..cells as u64 {
+        let mut acc = CellAccumulator::new(layout, ColorMode::Rgb);
+        for _ in 0..samples {
+            let light = (rng.next_f64() * f64::from(PARTITIONS)) as u32 % PARTITIONS;
+            let lambda_light = 0.2 + rng.next_f64();
+            let lambda_bsdf = [0.1 + rng.next_f64()];
+            let pdf = 0.3 + lambda_light + lambda_bsdf[0];
+            let f = rng.next_f64() * 2.0;
+            let s = CvSample {
+                pdf,
+                partition: Some((light, lambda_light)),
+                overlapping: &lambda_bsdf,
+            };
+            let w = 0.5 + rng.next_f64();
+            let _ = acc.add(w, [f, 0.8 * f, 0.6 * f + 0.1], &s);
+        }
+        table.insert(first + c, acc);
+    }
+    AccumulatorTable::Moments(table).encode()
+}
+
+/// The merge + solve benchmark (see the module docs); prints a markdown table.
+fn merge_solve(sims: usize, tiles: usize, cells: usize, samples: usize) {
+    // Simulated workers produce and encode their tiles' tables in parallel (not timed).
+    let t0 = Instant::now();
+    let per = tiles.div_ceil(sims.max(1));
+    let mut uploads: Vec<(usize, Vec<u8>)> = std::thread::scope(|s| {
+        let hs: Vec<_> = (0..sims.max(1))
+            .map(|w| {
+                s.spawn(move || {
+                    (w * per..((w + 1) * per).min(tiles))
+                        .map(|t| (t, tile_table(t, cells, samples)))
+                        .collect::<Vec<_>>()
+                })
+            })
+            .collect();
+        hs.into_iter()
+            .flat_map(|h| h.join().expect("sim worker"))
+            .collect()
+    });
+    uploads.sort_by_key(|(t, _)| *t);
+    let produced = t0.elapsed().as_secs_f64();
+    let bytes: usize = uploads.iter().map(|(_, b)| b.len()).sum();
+    let records = tiles * cells;
+
+    // Decode + merge in canonical (tile) order, as the coordinator's barrier does; best of 3.
+    let mut merge_s = f64::INFINITY;
+    let mut merged = None;
+    for _ in 0..3 {
+        let t = Instant::now();
+        let mut acc = AccumulatorTable::Moments(Default::default());
+        for (_, b) in &uploads {
+            let table = AccumulatorTable::decode(b).expect("decode");
+            acc.merge(&table).expect("merge");
+        }
+        merge_s = merge_s.min(t.elapsed().as_secs_f64());
+        merged = Some(acc);
+    }
+    let merged = merged.expect("merged");
+    let distinct = merged.len();
+
+    let policy = SolvePolicy::default();
+    let mut solve_s = Vec::new();
+    let mut solved_cells = 0;
+    let mut fitted = 0;
+    for threads in [1usize, 2] {
+        let mut best = f64::INFINITY;
+        for _ in 0..3 {
+            let t = Instant::now();
+            let solved = merged.solve(&policy, threads);
+            best = best.min(t.elapsed().as_secs_f64());
+            solved_cells = solved.coefficients.len();
+            fitted = solved
+                .coefficients
+                .values()
+                .filter(|c| c.diagnostics().status == SolveStatus::Solved)
+                .count();
+        }
+        solve_s.push((threads, best));
+    }
+    let encoded = merged.encode().len();
+
+    println!(
+        "merge/solve: {tiles} tile tables from {sims} simulated workers, {cells} cells/tile \
+         ({PARTITIONS} light partitions + {OVERLAPPING} BSDF, RGB, {samples} samples/cell), \
+         {:.1} MiB uploaded ({:.1} KiB/tile), {distinct} distinct cells after merge \
+         ({fitted} fitted, merged table {:.1} MiB); tables produced in {produced:.2} s\n",
+        bytes as f64 / (1 << 20) as f64,
+        bytes as f64 / 1024.0 / tiles as f64,
+        encoded as f64 / (1 << 20) as f64,
+    );
+    println!("| step | time (best of 3) | throughput |");
+    println!("|---|---:|---:|");
+    println!(
+        "| decode + merge ({records} records, canonical order) | {:.1} ms | {:.2} M merged cells/s ({:.0} MiB/s) |",
+        merge_s * 1e3,
+        records as f64 / merge_s / 1e6,
+        bytes as f64 / (1 << 20) as f64 / merge_s
+    );
+    for (threads, s) in solve_s {
+        println!(
+            "| solve ({solved_cells} cells, {threads} thread{}) | {:.1} ms | {:.2} M solved cells/s |",
+            if threads == 1 { "" } else { "s" },
+            s * 1e3,
+            solved_cells as f64 / s / 1e6
+        );
+    }
+}
+
+/// A real `cms` job on a loopback farm; prints the train barrier's throughput and the phases.
+fn cms_job(backend: Backend, workers: usize, scene: &str, res: u32, spp: u32) {
+    let db = TestDb::new(backend);
+    let coord = Coordinator::start(db.config());
+    let client = Client::new(&coord.url());
+    let ws: Vec<Worker> = (0..workers)
+        .map(|i| Worker::start(&coord.url(), &format!("w{i}")))
+        .collect();
+    let t0 = Instant::now();
+    let id = client.submit(&serde_json::json!({
+        "scene": {"inline": scene_json(&format!("{scene}/scene.json"))},
+        "estimator": {"kind": "cms"},
+        "resolution": [res, res], "spp": spp, "tile_size": 32, "seed": 1,
+    }));
+    let st = client.wait(id, Duration::from_secs(3600));
+    let wall = t0.elapsed().as_secs_f64();
+    for w in ws {
+        w.stop();
+    }
+    assert_eq!(st.state, JobState::Done, "{st:?}");
+    let stats: serde_json::Value =
+        serde_json::from_slice(&client.download(id, "stats.json")).expect("stats");
+    let table = client.download(id, "coefficients");
+    println!(
+        "cms job [{backend:?}]: {scene} {res}x{res} {spp} spp, {workers} workers x 1 slot, submit to done {wall:.2} s; \
+         coefficient table {:.1} KiB\n",
+        table.len() as f64 / 1024.0
+    );
+    println!(
+        "| phase | spp | tasks | wall (first lease → last result) | barrier after it | cells | barrier throughput |"
+    );
+    println!("|---|---:|---:|---:|---:|---:|---:|");
+    for p in stats["phases"].as_array().into_iter().flatten() {
+        let b = &p["barrier"];
+        let (bs, cells) = (b["seconds"].as_f64(), b["cells"].as_u64().unwrap_or(0));
+        println!(
+            "| {} | {} | {} | {:.2} s | {} | {} | {} |",
+            p["name"].as_str().unwrap_or("?"),
+            p["spp"],
+            p["tasks"],
+            p["seconds"].as_f64().unwrap_or(0.0),
+            bs.map_or("—".into(), |s| format!("{:.1} ms", s * 1e3)),
+            if cells > 0 {
+                cells.to_string()
+            } else {
+                "—".into()
+            },
+            match bs {
+                Some(s) if cells > 0 && s > 0.0 => {
+                    format!("{:.0} distinct cells/s (all steps)", cells as f64 / s)
+                }
+                _ => "—".into(),
+            },
+        );
+    }
+    let train = stats["phases"]
+        .as_array()
+        .and_then(|ph| ph.iter().position(|p| p["name"] == "train"));
+    if let Some(train) = train {
+        barrier_breakdown(&coord, id, train as i64);
+    }
+}
+
+/// The train barrier of job `id` redone step by step from its stored results, with the
+/// coordinator's own functions (`protocol::cv`, `AccumulatorTable`), each step timed (best of 3).
+fn barrier_breakdown(coord: &Coordinator, id: i64, train: i64) {
+    let store = &coord.state.store;
+    let blobs = coord
+        .block_on(store.phase_results(id, train))
+        .expect("train results");
+    let job = coord.block_on(store.job(id)).expect("store").expect("job");
+    let spec: protocol::JobSpec = serde_json::from_str(&job.spec).expect("spec");
+    let est = spec.estimator.phased().expect("a phased estimator");
+    let max_pixels = usize::MAX >> 1;
+    let best = |f: &mut dyn FnMut()| {
+        (0..3)
+            .map(|_| {
+                let t = Instant::now();
+                f();
+                t.elapsed().as_secs_f64()
+            })
+            .fold(f64::INFINITY, f64::min)
+    };
+    let mut tiles = Vec::new();
+    let decode_s = best(&mut || {
+        tiles = blobs
+            .iter()
+            .map(|b| protocol::frame::decode(b, max_pixels).expect("frame"))
+            .collect();
+    });
+    let mut tables = Vec::new();
+    let check_s = best(&mut || {
+        tables = tiles
+            .iter()
+            .map(|t| protocol::cv::check_train_block(&est, &job.resolved, t).expect("block"))
+            .collect();
+    });
+    let records: usize = tables.iter().map(AccumulatorTable::len).sum();
+    let block_bytes: usize = tiles
+        .iter()
+        .flat_map(|t| &t.cells)
+        .map(|c| c.data.len())
+        .sum();
+    let kind = protocol::cv::table_kind(&est);
+    // The barrier moves the tables into the merge: clone them before the clock starts.
+    let mut copies: Vec<Vec<AccumulatorTable>> = (0..3).map(|_| tables.clone()).collect();
+    let mut merged = None;
+    let merge_s = best(&mut || {
+        let t = copies.pop().expect("a copy per run");
+        merged = Some(protocol::cv::merge_train(kind, t).expect("merge"));
+    });
+    let merged = merged.expect("merged");
+    let policy = est.solve_policy();
+    let solve: Vec<(usize, f64)> = [1usize, 2]
+        .into_iter()
+        .map(|threads| {
+            (
+                threads,
+                best(&mut || {
+                    let _ = merged.solve(&policy, threads);
+                }),
+            )
+        })
+        .collect();
+    println!(
+        "\ntrain barrier step by step: {} tile results ({:.1} MiB of cell blocks, {records} cell records, \
+         {:.0} per tile), {} distinct cells\n",
+        blobs.len(),
+        block_bytes as f64 / (1 << 20) as f64,
+        records as f64 / blobs.len().max(1) as f64,
+        merged.len()
+    );
+    println!("| step | time (best of 3) | throughput |");
+    println!("|---|---:|---:|");
+    println!(
+        "| decode frames (pixels + blocks) | {:.1} ms | {:.0} tiles/s |",
+        decode_s * 1e3,
+        blobs.len() as f64 / decode_s
+    );
+    println!(
+        "| validate + decode cell tables (`check_train_block`) | {:.1} ms | {:.2} M records/s |",
+        check_s * 1e3,
+        records as f64 / check_s / 1e6
+    );
+    println!(
+        "| merge in canonical order (`merge_train`) | {:.1} ms | {:.2} M merged cells/s |",
+        merge_s * 1e3,
+        records as f64 / merge_s / 1e6
+    );
+    for (threads, s) in solve {
+        println!(
+            "| solve, {threads} thread(s) | {:.1} ms | {:.3} M solved cells/s |",
+            s * 1e3,
+            merged.len() as f64 / s / 1e6
+        );
+    }
+}
+
 fn main() {
-    let backend = if std::env::args().any(|a| a == "--pg") {
+    let args: Vec<String> = std::env::args().collect();
+    let backend = if args.iter().any(|a| a == "--pg") {
         Backend::Postgres
     } else {
         Backend::Sqlite
     };
-    queue_throughput(backend, arg("--sim-workers", 16), arg("--tasks", 1024));
-    overhead(backend);
+    let only = args
+        .iter()
+        .position(|a| a == "--only")
+        .and_then(|i| args.get(i + 1))
+        .cloned();
+    let run = |name: &str| only.as_deref().is_none_or(|o| o == name);
+    if run("queue") {
+        queue_throughput(backend, arg("--sim-workers", 16), arg("--tasks", 1024));
+    }
+    if run("merge") {
+        merge_solve(
+            arg("--sim-workers", 16),
+            arg("--tiles", 256),
+            arg("--cells", 300),
+            arg("--samples", 64),
+        );
+    }
+    if run("cms") {
+        let scene = args
+            .iter()
+            .position(|a| a == "--scene")
+            .and_then(|i| args.get(i + 1))
+            .map_or("many-lights", String::as_str);
+        cms_job(
+            backend,
+            arg("--workers", 2),
+            scene,
+            arg("--res", 256) as u32,
+            arg("--spp", 32) as u32,
+        );
+    }
+    if run("overhead") {
+        overhead(backend);
+    }
 }
