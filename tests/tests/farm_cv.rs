@@ -540,6 +540,11 @@ fn target_rel_mse_stops(backend: Backend) {
     let spp = stats["spp"].as_f64().expect("spp") as u32;
     assert!(spp.is_multiple_of(4) && (4..=32).contains(&spp), "{stats}");
     assert!(stats["estimated_rel_mse"].as_f64().expect("rel") <= target);
+    assert_eq!(
+        stats["phases"][0]["spp"].as_u64(),
+        Some(u64::from(spp)),
+        "{stats}"
+    );
     // The farm image is exactly the first spp/4 rounds, and every earlier round missed the
     // target (the stop is the first round that meets it, whatever the workers did).
     let local = local_path_image(&scene, &status.job, spp, 4);

@@ -399,7 +399,15 @@ fn build_outputs(
                     _ => 0.0,
                 },
                 tasks: p.tasks.max(0) as u64,
-                spp: p.spp,
+                // An adaptive phase that stopped early rendered only its first rounds.
+                spp: match p.stop_round {
+                    Some(round) => {
+                        let rounds = u64::try_from(round + 1).unwrap_or(0);
+                        let done = rounds * u64::from(r.samples_per_task);
+                        p.spp.min(u32::try_from(done).unwrap_or(u32::MAX))
+                    }
+                    None => p.spp,
+                },
                 barrier: p
                     .barrier
                     .as_deref()
