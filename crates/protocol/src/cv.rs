@@ -98,34 +98,43 @@ pub fn cell_key_limit(est: &PhasedEstimator, job: &ResolvedJob) -> u64 {
 /// The layout every record of `table` shares (`None` for an empty table), e.g.
 /// `cells(partitions=3, overlapping=1, Rgb)`; records of different layouts are an error.
 pub fn layout_signature(table: &AccumulatorTable) -> Result<Option<String>, CvError> {
-    let sigs: Vec<String> = match table {
-        AccumulatorTable::Moments(t) => t
-            .values()
-            .map(|a| {
-                let l = a.layout();
-                format!(
-                    "cells(partitions={}, overlapping={}, {:?})",
-                    l.partitions,
-                    l.overlapping,
-                    a.color()
-                )
-            })
-            .collect(),
-        AccumulatorTable::Mean(t) => t
-            .values()
-            .map(|a| format!("mean_contributions(lights={})", a.lights()))
-            .collect(),
-    };
-    let Some(first) = sigs.first() else {
-        return Ok(None);
-    };
-    if let Some(other) = sigs.iter().find(|s| *s != first) {
-        return Err(CvError::Layout {
-            found: other.clone(),
-            expected: format!("{first} (in the same block)"),
-        });
+    // Compare plain tuples per record; format only the first and an offender.
+    fn uniform<T, K: PartialEq + Copy>(
+        records: impl Iterator<Item = T>,
+        key: impl Fn(&T) -> K,
+        show: impl Fn(K) -> String,
+    ) -> Result<Option<String>, CvError> {
+        let mut first: Option<K> = None;
+        for r in records {
+            let k = key(&r);
+            match first {
+                None => first = Some(k),
+                Some(f) if f != k => {
+                    return Err(CvError::Layout {
+                        found: show(k),
+                        expected: format!("{} (in the same block)", show(f)),
+                    });
+                }
+                Some(_) => {}
+            }
+        }
+        Ok(first.map(show))
     }
-    Ok(Some(first.clone()))
+    match table {
+        AccumulatorTable::Moments(t) => uniform(
+            t.values(),
+            |a| {
+                let l = a.layout();
+                (l.partitions, l.overlapping, a.color())
+            },
+            |(p, o, c)| format!("cells(partitions={p}, overlapping={o}, {c:?})"),
+        ),
+        AccumulatorTable::Mean(t) => uniform(
+            t.values(),
+            |a| a.lights(),
+            |n| format!("mean_contributions(lights={n})"),
+        ),
+    }
 }
 
 /// Validates the cell block of a `train` result: exactly one block, of the job's kind, that
