@@ -10,7 +10,7 @@
 //! |---|---|---|
 //! | `job` | a job appears or its state changes (`running`, `paused`, `done`, `failed`, `cancelled`) | `{"job", "state", "phase", "error"}` |
 //! | `phase` | a phase starts, finishes, or gets its input from the previous barrier: the surrogate image or the coefficient table (the "coefficients announced" event) | `{"job", "idx", "phase", "started_ms", "finished_ms", "surrogate", "coefficients"}` |
-//! | `progress` | tasks done changed; at most once per [`PROGRESS_INTERVAL`] per job, always when a phase completes | `{"job", "tasks_done", "tasks_total", "phase_idx", "phase_done", "phase_total"}` |
+//! | `progress` | tasks done changed; at most once per [`PROGRESS_INTERVAL`] per job, but at once when a phase completes, the next one begins or the job ends | `{"job", "tasks_done", "tasks_total", "phase_idx", "phase_done", "phase_total"}` |
 //!
 //! `?job=ID` restricts the stream to one job (404 when it does not exist). A fresh stream
 //! first reports every running or paused job (its state, its phases that started or have an input, its progress); jobs
@@ -193,6 +193,94 @@ fn ended(s: JobState) -> bool {
     !matches!(s, JobState::Running | JobState::Paused)
 }
 
+/// An event to send, before it gets its id.
+#[derive(Clone, Debug, PartialEq)]
+enum Outgoing {
+    Job(JobEvent),
+    Phase(PhaseEvent),
+    Progress(ProgressEvent),
+}
+
+/// What a stream has sent, per job, and the pure rule turning a new view into events.
+#[derive(Debug, Default)]
+struct Tracker {
+    sent: HashMap<i64, Sent>,
+}
+
+impl Tracker {
+    /// The events that bring a client from what it was sent about job `id` to `view`, seen
+    /// at `now` (ms): a running job is announced before its phases and progress, an end
+    /// after them; progress at most every [`PROGRESS_INTERVAL`] unless a phase completed, the
+    /// active phase changed or the job ended.
+    fn diff(&mut self, id: i64, view: &JobView, now: i64) -> Vec<Outgoing> {
+        let mut out = Vec::new();
+        let prev = self.sent.get(&id).cloned();
+        let state_changed = prev.as_ref().is_none_or(|p| p.state != view.state);
+        let job_event = JobEvent {
+            job: id,
+            state: view.state,
+            phase: view.phases.get(&view.phase_idx).map(|p| p.phase.clone()),
+            error: view.error.clone(),
+        };
+        if state_changed && !ended(view.state) {
+            out.push(Outgoing::Job(job_event.clone()));
+        }
+        for (idx, ph) in &view.phases {
+            let before = prev.as_ref().and_then(|p| p.phases.get(idx));
+            if ph.reportable() && before != Some(ph) {
+                out.push(Outgoing::Phase(ph.clone()));
+            }
+        }
+        let progress = view.progress(id);
+        let last = prev.as_ref().and_then(|p| p.progress);
+        let due = prev
+            .as_ref()
+            .is_none_or(|p| now - p.progress_at_ms >= PROGRESS_INTERVAL.as_millis() as i64);
+        let phase_complete =
+            progress.phase_total > 0 && progress.phase_done == progress.phase_total;
+        let mut progress_at_ms = prev.as_ref().map_or(0, |p| p.progress_at_ms);
+        let mut progress_sent = last;
+        let phase_moved = last.is_some_and(|l| l.phase_idx != progress.phase_idx);
+        if last != Some(progress) && (due || phase_complete || phase_moved || ended(view.state)) {
+            out.push(Outgoing::Progress(progress));
+            progress_at_ms = now;
+            progress_sent = Some(progress);
+        }
+        if state_changed && ended(view.state) {
+            out.push(Outgoing::Job(job_event));
+        }
+        self.sent.insert(
+            id,
+            Sent {
+                state: view.state,
+                phases: view
+                    .phases
+                    .iter()
+                    .filter(|(_, p)| p.reportable())
+                    .map(|(k, v)| (*k, v.clone()))
+                    .collect(),
+                progress: progress_sent,
+                progress_at_ms,
+            },
+        );
+        out
+    }
+
+    /// Jobs reported as running or paused (their end must still be reported).
+    fn unfinished(&self) -> impl Iterator<Item = i64> + '_ {
+        self.sent
+            .iter()
+            .filter(|(_, s)| !ended(s.state))
+            .map(|(id, _)| *id)
+    }
+
+    /// Forgets ended jobs that are not in `views` any more.
+    fn forget_ended_except(&mut self, views: &BTreeMap<i64, JobView>) {
+        self.sent
+            .retain(|id, s| views.contains_key(id) || !ended(s.state));
+    }
+}
+
 /// One stream's poller: its filter, cursor and what it has sent.
 struct Poller {
     state: Arc<AppState>,
@@ -200,7 +288,7 @@ struct Poller {
     last_id: u64,
     /// Ended jobs are read when they ended at or after this time (ms).
     horizon_ms: i64,
-    sent: HashMap<i64, Sent>,
+    tracker: Tracker,
     queue: VecDeque<Event>,
     stopping: tokio::sync::watch::Receiver<bool>,
     polled: bool,
@@ -233,77 +321,29 @@ impl Poller {
         // Jobs this stream saw running but that fell out of the window (an end time far in
         // the past, e.g. a skewed clock): read them by id so their end is reported.
         let missing: Vec<i64> = self
-            .sent
-            .iter()
-            .filter(|(id, s)| !ended(s.state) && !views.contains_key(id))
-            .map(|(id, _)| *id)
+            .tracker
+            .unfinished()
+            .filter(|id| !views.contains_key(id))
             .collect();
         for id in missing {
             views.extend(read_jobs(store, Some(id), i64::MIN).await?);
         }
         for (id, view) in &views {
-            self.diff(*id, view, now);
+            for e in self.tracker.diff(*id, view, now) {
+                match &e {
+                    Outgoing::Job(d) => self.push("job", d),
+                    Outgoing::Phase(d) => self.push("phase", d),
+                    Outgoing::Progress(d) => self.push("progress", d),
+                }
+            }
         }
         // Forget ended jobs that left the window.
-        self.sent
-            .retain(|id, s| views.contains_key(id) || !ended(s.state));
+        self.tracker.forget_ended_except(&views);
         if self.polled {
             self.horizon_ms = self.horizon_ms.max(now - ENDED_WINDOW_MS);
         }
         self.polled = true;
         Ok(())
-    }
-
-    fn diff(&mut self, id: i64, view: &JobView, now: i64) {
-        let prev = self.sent.get(&id).cloned();
-        let state_changed = prev.as_ref().is_none_or(|p| p.state != view.state);
-        let job_event = JobEvent {
-            job: id,
-            state: view.state,
-            phase: view.phases.get(&view.phase_idx).map(|p| p.phase.clone()),
-            error: view.error.clone(),
-        };
-        // A running job is announced before its phases and progress; an end after them.
-        if state_changed && !ended(view.state) {
-            self.push("job", &job_event);
-        }
-        for (idx, ph) in &view.phases {
-            let before = prev.as_ref().and_then(|p| p.phases.get(idx));
-            if ph.reportable() && before != Some(ph) {
-                self.push("phase", ph);
-            }
-        }
-        let progress = view.progress(id);
-        let last = prev.as_ref().and_then(|p| p.progress);
-        let due = prev
-            .as_ref()
-            .is_none_or(|p| now - p.progress_at_ms >= PROGRESS_INTERVAL.as_millis() as i64);
-        let phase_complete =
-            progress.phase_total > 0 && progress.phase_done == progress.phase_total;
-        let mut progress_at_ms = prev.as_ref().map_or(0, |p| p.progress_at_ms);
-        let mut progress_sent = last;
-        if last != Some(progress) && (due || phase_complete || ended(view.state)) {
-            self.push("progress", &progress);
-            progress_at_ms = now;
-            progress_sent = Some(progress);
-        }
-        if state_changed && ended(view.state) {
-            self.push("job", &job_event);
-        }
-        self.sent.insert(
-            id,
-            Sent {
-                state: view.state,
-                phases: view
-                    .phases
-                    .iter()
-                    .filter(|(_, p)| p.reportable())
-                    .map(|(k, v)| (*k, v.clone()))
-                    .collect(),
-                progress: progress_sent,
-                progress_at_ms,
-            },
-        );
     }
 
     /// The next event, polling the store as needed; `None` once the coordinator stops.
@@ -480,7 +520,7 @@ async fn events(
         filter: q.job,
         last_id: resume.unwrap_or(0),
         horizon_ms,
-        sent: HashMap::new(),
+        tracker: Tracker::default(),
         queue: VecDeque::new(),
         polled: false,
     };
@@ -570,6 +610,86 @@ mod tests {
         assert_eq!(last_event_id(&h).unwrap(), Some(1_763_900_000_000_123));
         h.insert("last-event-id", "abc".parse().unwrap());
         assert!(matches!(last_event_id(&h), Err(AppError::BadRequest(_))));
+    }
+
+    fn view(state: JobState, phase_idx: i64, tasks: &[(i64, i64)]) -> JobView {
+        let phases = (0..tasks.len() as i64)
+            .map(|idx| {
+                (
+                    idx,
+                    PhaseEvent {
+                        job: 1,
+                        idx,
+                        phase: ["train", "render"][idx as usize % 2].into(),
+                        started_ms: (idx <= phase_idx && tasks[idx as usize].0 > 0).then_some(10),
+                        finished_ms: (idx < phase_idx).then_some(20),
+                        surrogate: None,
+                        coefficients: (idx == 1 && phase_idx == 1).then(|| "ab".repeat(32)),
+                    },
+                )
+            })
+            .collect();
+        JobView {
+            state,
+            phase_idx,
+            error: None,
+            phases,
+            tasks: tasks
+                .iter()
+                .copied()
+                .enumerate()
+                .map(|(i, t)| (i as i64, t))
+                .collect(),
+        }
+    }
+
+    fn kinds(events: &[Outgoing]) -> Vec<&'static str> {
+        events
+            .iter()
+            .map(|e| match e {
+                Outgoing::Job(_) => "job",
+                Outgoing::Phase(_) => "phase",
+                Outgoing::Progress(_) => "progress",
+            })
+            .collect()
+    }
+
+    #[test]
+    fn tracker_reports_changes_once_in_order_and_rate_limits_progress() {
+        let mut t = Tracker::default();
+        // New running job: state first, then its progress (no phase started yet).
+        let e = t.diff(1, &view(JobState::Running, 0, &[(0, 4), (0, 2)]), 0);
+        assert_eq!(kinds(&e), ["job", "progress"]);
+        // Unchanged: nothing.
+        assert!(
+            t.diff(1, &view(JobState::Running, 0, &[(0, 4), (0, 2)]), 100)
+                .is_empty()
+        );
+        // A task done 200 ms later: the phase started; progress waits for the interval.
+        let e = t.diff(1, &view(JobState::Running, 0, &[(1, 4), (0, 2)]), 200);
+        assert_eq!(kinds(&e), ["phase"]);
+        let e = t.diff(1, &view(JobState::Running, 0, &[(1, 4), (0, 2)]), 1000);
+        assert_eq!(kinds(&e), ["progress"]);
+        // The phase completes: progress at once, however recent the last one.
+        let e = t.diff(1, &view(JobState::Running, 0, &[(4, 4), (0, 2)]), 1100);
+        assert_eq!(kinds(&e), ["progress"]);
+        // The barrier: phase 0 finished, phase 1 gets its coefficients before any lease.
+        let e = t.diff(1, &view(JobState::Running, 1, &[(4, 4), (0, 2)]), 1200);
+        assert_eq!(kinds(&e), ["phase", "phase", "progress"]);
+        let Outgoing::Phase(p) = &e[1] else {
+            unreachable!()
+        };
+        assert_eq!(
+            (p.idx, p.coefficients.is_some(), p.started_ms),
+            (1, true, None)
+        );
+        // Done: the final progress before the end.
+        let e = t.diff(1, &view(JobState::Done, 1, &[(4, 4), (2, 2)]), 1300);
+        assert_eq!(kinds(&e), ["phase", "progress", "job"]);
+        assert!(matches!(&e[2], Outgoing::Job(j) if j.state == JobState::Done));
+        assert_eq!(t.unfinished().count(), 0);
+        t.forget_ended_except(&BTreeMap::new());
+        assert!(t.sent.is_empty());
     }
 
     #[test]
