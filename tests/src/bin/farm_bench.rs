@@ -377,6 +377,19 @@ fn cms_job(backend: Backend, workers: usize, scene: &str, res: u32, spp: u32) {
             },
         );
     }
+    // convergence.csv is computed on read from every stored result: its cost for this job.
+    let t = Instant::now();
+    let csv = client.download(id, "convergence.csv");
+    let csv_s = t.elapsed().as_secs_f64();
+    let rows = csv
+        .iter()
+        .filter(|&&b| b == b'\n')
+        .count()
+        .saturating_sub(1);
+    println!(
+        "\nconvergence.csv: {rows} rows in {:.0} ms (decode + merge of every stored result per read)",
+        csv_s * 1e3
+    );
     let train = stats["phases"]
         .as_array()
         .and_then(|ph| ph.iter().position(|p| p["name"] == "train"));
