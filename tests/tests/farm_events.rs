@@ -372,6 +372,48 @@ fn cms_job_announces_coefficients_postgres() {
     cms_events_and_convergence(Backend::Postgres);
 }
 
+/// A job whose error target is met by its first round: the later rounds are skipped, so the
+/// final progress counts only the tasks that ran and the series has the one round that did.
+#[test]
+fn early_stopped_job_reports_only_the_rounds_it_ran() {
+    let db = TestDb::new(Backend::Sqlite);
+    let coord = Coordinator::start(db.config());
+    let client = Client::new(&coord.url());
+    let mut s = spec(16, 64, 4);
+    s["target_rel_mse"] = serde_json::json!(1e9);
+    let id = client.submit(&s);
+    let stream = SseStream::open(&coord.url(), &format!("/v1/events?job={id}"), None);
+    let ws: Vec<Worker> = (0..2)
+        .map(|i| Worker::start(&coord.url(), &format!("w{i}")))
+        .collect();
+    let seen = stream.until(Duration::from_secs(120), |e| is_end(e, id));
+    for w in ws {
+        w.stop();
+    }
+    assert_eq!(seen.last().expect("events").data["state"], "done");
+    let last = seen
+        .iter()
+        .rfind(|e| e.kind == "progress")
+        .expect("progress");
+    assert_eq!(
+        last.data["tasks_done"], last.data["tasks_total"],
+        "{last:?}"
+    );
+    assert_eq!(last.data["tasks_total"].as_u64(), Some(4), "{last:?}");
+    let csv = String::from_utf8(client.download(id, "convergence.csv")).expect("utf-8");
+    let rows: Vec<Vec<f64>> = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').map(|x| x.parse().expect("number")).collect())
+        .collect();
+    let stats: serde_json::Value =
+        serde_json::from_slice(&client.download(id, "stats.json")).expect("stats");
+    assert_eq!(rows.len(), 1, "{csv}");
+    assert_eq!(Some(rows[0][1]), stats["spp"].as_f64(), "{csv}\n{stats}");
+    assert_eq!(rows[0][1], 4.0);
+    assert_eq!(Some(rows[0][2]), stats["estimated_rel_mse"].as_f64());
+}
+
 #[test]
 fn event_streams_end_when_the_coordinator_shuts_down() {
     let db = TestDb::new(Backend::Sqlite);

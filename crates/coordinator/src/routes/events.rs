@@ -139,9 +139,9 @@ impl PhaseEvent {
 pub struct ProgressEvent {
     /// Job id.
     pub job: i64,
-    /// Tasks done over all phases created so far.
+    /// Tasks done over all phases.
     pub tasks_done: i64,
-    /// Tasks over all phases created so far.
+    /// Tasks over all phases (not counting tasks skipped by an early stop).
     pub tasks_total: i64,
     /// Active phase.
     pub phase_idx: i64,
@@ -457,7 +457,7 @@ async fn read_jobs(
         &format!(
             "SELECT job_id, phase_idx, COUNT(*) AS total, \
                     CAST(COALESCE(SUM(CASE WHEN state = 'done' THEN 1 ELSE 0 END), 0) AS BIGINT) AS done \
-             FROM tasks WHERE job_id IN ({}) GROUP BY job_id, phase_idx",
+             FROM tasks WHERE job_id IN ({}) AND state <> 'skipped' GROUP BY job_id, phase_idx",
             placeholders(ids.len())
         ),
     );
@@ -553,7 +553,8 @@ fn task_sample(r: &AnyRow) -> Result<TaskSample, StoreError> {
     })
 }
 
-/// Every task of a job with its accepted result when done.
+/// Every task of a job with its accepted result when done; tasks skipped by an early stop
+/// (a time budget or error target met) never run, so they form no round.
 async fn job_tasks(store: &Store, job_id: i64) -> Result<Vec<TaskSample>, StoreError> {
     let q = sql(
         store,
@@ -561,7 +562,7 @@ async fn job_tasks(store: &Store, job_id: i64) -> Result<Vec<TaskSample>, StoreE
                 t.height AS height, t.sample_start AS sample_start, t.sample_end AS sample_end, \
                 t.state AS state, t.done_ms AS done_ms, r.data AS data \
          FROM tasks t LEFT JOIN results r ON r.task_id = t.id AND r.attempt = t.done_attempt \
-         WHERE t.job_id = ? ORDER BY t.phase_idx, t.seq",
+         WHERE t.job_id = ? AND t.state <> 'skipped' ORDER BY t.phase_idx, t.seq",
     );
     sqlx::query(&q)
         .bind(job_id)
