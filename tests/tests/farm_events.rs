@@ -221,6 +221,11 @@ fn events_reject_bad_tokens_unknown_jobs_and_bad_ids() {
     let r = client.request("GET", "/v1/events?job=x", None);
     assert_eq!(r.status, 400);
     assert_eq!(r.api_error().code, "invalid_query");
+    // The largest id a client can send: the stream still serves (ids saturate).
+    let id = client.submit(&spec(16, 4, 4));
+    let s = SseStream::open(&coord.url(), "/v1/events", Some(u64::MAX));
+    let got = s.until(Duration::from_secs(30), |e| e.kind == "job");
+    assert_eq!(got[0].job(), id);
     let r = client.request("GET", "/v1/jobs/999/convergence.csv", None);
     assert_eq!(r.status, 404);
     assert_eq!(r.api_error().code, "not_found");

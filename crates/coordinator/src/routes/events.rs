@@ -297,7 +297,7 @@ struct Poller {
 impl Poller {
     fn next_id(&mut self) -> u64 {
         let t = u64::try_from(now_ms()).unwrap_or(0).saturating_mul(1000);
-        self.last_id = t.max(self.last_id + 1);
+        self.last_id = t.max(self.last_id.saturating_add(1));
         self.last_id
     }
 
