@@ -16,7 +16,7 @@ use std::collections::BTreeMap;
 
 use estimators::solve::SolveStatus;
 use estimators::spec::{MAX_GRID_CELLS, PhasedEstimator};
-use estimators::surrogate::{PixelMoments, encode_surrogate, surrogate_image};
+use estimators::surrogate::{encode_surrogate, surrogate_image};
 use estimators::table::{
     AccumulatorTable, KIND_CELL_ACCUMULATORS, KIND_MEAN_CONTRIBUTIONS, SolvedTable,
 };
@@ -181,18 +181,7 @@ pub fn surrogate_blob<'a>(
     for r in results {
         acc.add(r)?;
     }
-    let moments: Vec<PixelMoments> = acc
-        .pixels()
-        .iter()
-        .map(|p| PixelMoments {
-            sum: p.sum,
-            sum_sq: p.sum_sq,
-            albedo: p.albedo,
-            normal: p.normal,
-            count: p.count,
-        })
-        .collect();
-    let img = surrogate_image(&moments, job.width as usize, job.height as usize);
+    let img = surrogate_image(acc.pixels(), job.width as usize, job.height as usize);
     Ok(encode_surrogate(&img, job.width, job.height))
 }
 

@@ -42,20 +42,10 @@ const T_CELLS: u8 = 3;
 const T_END: u8 = 4;
 const HEADER_BYTES: usize = 4 + 2 + 8 + 8 + 4 + 4 * 4 + 4 * 2;
 
-/// Per-pixel accumulators of one tile over its sample range.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct PixelRecord {
-    /// Σ radiance (linear RGB).
-    pub sum: [f64; 3],
-    /// Σ radiance² per channel.
-    pub sum_sq: [f64; 3],
-    /// Σ albedo AOV.
-    pub albedo: [f64; 3],
-    /// Σ shading normal AOV.
-    pub normal: [f64; 3],
-    /// Number of samples summed.
-    pub count: u64,
-}
+/// Per-pixel accumulators of one tile over its sample range (Σ radiance, Σ radiance², Σ albedo,
+/// Σ shading normal, sample count): the moments `estimators` computes the surrogate from, so
+/// the renderer, the worker and the coordinator share one type.
+pub type PixelRecord = estimators::surrogate::PixelMoments;
 
 /// A block of per-cell accumulator records, opaque to the protocol until `estimators`
 /// defines the encoding; `kind` says which encoding.

@@ -25,12 +25,11 @@ use estimators::table::decode_table;
 use protocol::TileResult;
 use protocol::assemble::{AssembledImage, ImageAccumulator};
 use protocol::cv;
-use protocol::frame::{CellBlock, PixelRecord, TileHeader};
+use protocol::frame::{CellBlock, TileHeader};
 use protocol::job::{
     EstimatorSpec, LightSelection, MisHeuristic, ResolvedJob, TileRect, plan_phases,
 };
 use protocol::lease::PhaseKind;
-use render::film::Film;
 use render::integrator::cv::{CoefficientTable, CvJob};
 use render::integrator::{Estimator, RenderScene, RenderSettings};
 
@@ -127,19 +126,6 @@ fn rtile(r: TileRect) -> render::tile::TileRect {
         width: r.width,
         height: r.height,
     }
-}
-
-fn pixels_of(film: &Film) -> Vec<PixelRecord> {
-    film.pixels
-        .iter()
-        .map(|p| PixelRecord {
-            sum: p.sum,
-            sum_sq: p.sum_sq,
-            albedo: p.albedo_sum,
-            normal: p.normal_sum,
-            count: p.count,
-        })
-        .collect()
 }
 
 impl Prepared {
@@ -285,7 +271,7 @@ impl Prepared {
         };
         Ok(TileResult {
             header,
-            pixels: pixels_of(&film),
+            pixels: render::integrator::cv::film_moments(&film),
             cells,
         })
     }
