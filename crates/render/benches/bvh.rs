@@ -14,23 +14,9 @@ use render::accel::{Accel, AccelKind};
 use render::math::Ray;
 use render::sampler::mix64;
 
-/// CPU seconds (user + system) of this process, from `/proc/self/stat` (Linux; NaN
-/// elsewhere). Single-threaded sections divide by it to be fair on a shared machine.
-fn cpu_seconds() -> f64 {
-    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else {
-        return f64::NAN;
-    };
-    let Some(close) = stat.rfind(')') else {
-        return f64::NAN;
-    };
-    let f: Vec<&str> = stat[close + 2..].split_whitespace().collect();
-    let tick = |i: usize| {
-        f.get(i)
-            .and_then(|v| v.parse::<f64>().ok())
-            .unwrap_or(f64::NAN)
-    };
-    (tick(11) + tick(12)) / 100.0
-}
+#[path = "../tests/cpu_time/mod.rs"]
+mod cpu_time;
+use cpu_time::cpu_seconds;
 
 /// Uniform float in [0, 1) from a hash.
 fn unit(h: u64) -> f32 {

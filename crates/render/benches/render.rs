@@ -9,16 +9,9 @@ use std::path::PathBuf;
 
 use render::{RenderOptions, RenderScene, RenderSettings, render_image};
 
-/// CPU seconds (user + system) this process has used so far, from `/proc/self/stat` (Linux;
-/// `None` elsewhere). Reported beside wall time because the machine may be shared.
-fn cpu_seconds() -> Option<f64> {
-    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
-    // Fields after the parenthesised command name; utime and stime are fields 14 and 15.
-    let rest = &stat[stat.rfind(')')? + 2..];
-    let f: Vec<&str> = rest.split_whitespace().collect();
-    let ticks: f64 = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
-    Some(ticks / 100.0) // USER_HZ is 100 on Linux
-}
+#[path = "../tests/cpu_time/mod.rs"]
+mod cpu_time;
+use cpu_time::cpu_seconds;
 
 fn main() {
     let root = PathBuf::from(std::env::var("SCENES_MITSUBA").unwrap_or_else(|_| {
@@ -67,7 +60,7 @@ fn main() {
             &|_, _| {},
         )
         .expect("render");
-        let cpu = cpu_seconds().zip(cpu0).map_or(f64::NAN, |(b, a)| b - a);
+        let cpu = cpu_seconds() - cpu0;
         println!(
             "{name}: 256x256 @ {spp} spp, depth 5, {threads} threads: wall {:.3} s, {:.3} Msamples/s, \
              {:.3} Mrays/s; CPU {cpu:.3} s, {:.3} Msamples/CPU-s, {:.3} Mrays/CPU-s",
