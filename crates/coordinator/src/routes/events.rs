@@ -377,8 +377,21 @@ fn sql(store: &Store, s: &str) -> String {
 }
 
 /// `?, ?, …` for `n` values.
-fn placeholders(n: usize) -> String {
-    vec!["?"; n].join(", ")
+/// Runs `template` with `{ids}` replaced by one placeholder per id, bound in order.
+async fn rows_for_jobs(
+    store: &Store,
+    template: &str,
+    ids: &[i64],
+) -> Result<Vec<sqlx::any::AnyRow>, StoreError> {
+    let q = sql(
+        store,
+        &template.replace("{ids}", &vec!["?"; ids.len()].join(", ")),
+    );
+    let mut query = sqlx::query(&q);
+    for id in ids {
+        query = query.bind(*id);
+    }
+    Ok(query.fetch_all(store.pool()).await?)
 }
 
 /// Running or paused jobs, plus those that ended at or after `horizon_ms` (one job only when
@@ -422,19 +435,14 @@ async fn read_jobs(
         return Ok(views);
     }
     let ids: Vec<i64> = views.keys().copied().collect();
-    let q = sql(
+    let phases = rows_for_jobs(
         store,
-        &format!(
-            "SELECT job_id, idx, name, surrogate, coefficients, started_ms, finished_ms FROM phases \
-             WHERE job_id IN ({}) ORDER BY job_id, idx",
-            placeholders(ids.len())
-        ),
-    );
-    let mut query = sqlx::query(&q);
-    for id in &ids {
-        query = query.bind(*id);
-    }
-    for r in query.fetch_all(pool).await? {
+        "SELECT job_id, idx, name, surrogate, coefficients, started_ms, finished_ms FROM phases \
+         WHERE job_id IN ({ids}) ORDER BY job_id, idx",
+        &ids,
+    )
+    .await?;
+    for r in phases {
         let job: i64 = r.try_get("job_id")?;
         let idx: i64 = r.try_get("idx")?;
         if let Some(v) = views.get_mut(&job) {
@@ -452,20 +460,15 @@ async fn read_jobs(
             );
         }
     }
-    let q = sql(
+    let counts = rows_for_jobs(
         store,
-        &format!(
-            "SELECT job_id, phase_idx, COUNT(*) AS total, \
-                    CAST(COALESCE(SUM(CASE WHEN state = 'done' THEN 1 ELSE 0 END), 0) AS BIGINT) AS done \
-             FROM tasks WHERE job_id IN ({}) AND state <> 'skipped' GROUP BY job_id, phase_idx",
-            placeholders(ids.len())
-        ),
-    );
-    let mut query = sqlx::query(&q);
-    for id in &ids {
-        query = query.bind(*id);
-    }
-    for r in query.fetch_all(pool).await? {
+        "SELECT job_id, phase_idx, COUNT(*) AS total, \
+                CAST(COALESCE(SUM(CASE WHEN state = 'done' THEN 1 ELSE 0 END), 0) AS BIGINT) AS done \
+         FROM tasks WHERE job_id IN ({ids}) AND state <> 'skipped' GROUP BY job_id, phase_idx",
+        &ids,
+    )
+    .await?;
+    for r in counts {
         let job: i64 = r.try_get("job_id")?;
         if let Some(v) = views.get_mut(&job) {
             v.tasks.insert(
