@@ -11,12 +11,18 @@
 //! - [`Worker`]: `worker::run` in its own runtime; [`Worker::stop`] (graceful) and
 //!   [`Worker::kill`].
 //! - [`Client`]: one method per endpoint, JSON errors decoded.
+//! - [`Farm`]: the usual start of a test (a fresh store, a coordinator on it, a client) and
+//!   [`Farm::finish`] (real workers run a submitted job to `done`).
+//! - [`FakeWorker`]: a worker driven by hand through raw HTTP; [`tile_header`] and
+//!   [`blank_result`] build the frames it uploads.
+//! - [`local_exr`], [`local_scene`], [`film_exr`], [`prepared`]: the in-process references.
 
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
-use protocol::ApiErrorBody;
-use protocol::lease::{JobState, JobStatus};
+use protocol::frame::{PixelRecord, TileHeader};
+use protocol::lease::{JobState, JobStatus, TaskLease};
+use protocol::{ApiErrorBody, TileResult};
 use sqlx::Connection;
 
 /// Client token used by every test farm.
@@ -424,6 +430,23 @@ impl Client {
         }
     }
 
+    /// [`Client::wait`], then asserts the job ended `done`.
+    pub fn wait_done(&self, id: i64, timeout: Duration) -> JobStatus {
+        let status = self.wait(id, timeout);
+        assert_eq!(status.state, JobState::Done, "{status:?}");
+        status
+    }
+
+    /// `GET /v1/jobs/{id}/stats.json`, parsed.
+    pub fn stats(&self, id: i64) -> serde_json::Value {
+        serde_json::from_slice(&self.download(id, "stats.json")).expect("stats")
+    }
+
+    /// `GET /v1/jobs/{id}/{name}` of a UTF-8 output (`convergence.csv`).
+    pub fn download_text(&self, id: i64, name: &str) -> String {
+        String::from_utf8(self.download(id, name)).expect("utf-8")
+    }
+
     /// `GET /v1/jobs/{id}/{name}`; panics unless 200.
     pub fn download(&self, id: i64, name: &str) -> Vec<u8> {
         let r = self.request("GET", &format!("/v1/jobs/{id}/{name}"), None);
@@ -435,6 +458,223 @@ impl Client {
         );
         r.body
     }
+}
+
+/// Two `#[test]`s running `body(Backend)`: `$sqlite` on SQLite, `$postgres` on PostgreSQL.
+///
+/// ```ignore
+/// e2e::backend_tests!(convergence: convergence_sqlite, convergence_postgres);
+/// ```
+#[macro_export]
+macro_rules! backend_tests {
+    ($body:ident: $sqlite:ident, $postgres:ident) => {
+        #[test]
+        fn $sqlite() {
+            $body($crate::Backend::Sqlite);
+        }
+
+        #[test]
+        fn $postgres() {
+            $body($crate::Backend::Postgres);
+        }
+    };
+}
+
+/// Starts `n` workers named `w0`, `w1`, … against `url`.
+pub fn start_workers(url: &str, n: usize) -> Vec<Worker> {
+    (0..n)
+        .map(|i| Worker::start(url, &format!("w{i}")))
+        .collect()
+}
+
+/// Stops every worker gracefully.
+pub fn stop_workers(workers: Vec<Worker>) {
+    for w in workers {
+        w.stop();
+    }
+}
+
+/// A test farm: a fresh store, a coordinator on it and a client of it. Fields drop in
+/// order: the coordinator stops before its store is removed.
+pub struct Farm {
+    /// The coordinator.
+    pub coord: Coordinator,
+    /// A client with the client token.
+    pub client: Client,
+    /// The store.
+    pub db: TestDb,
+}
+
+impl Farm {
+    /// A farm with the test config of [`TestDb::config`].
+    pub fn start(backend: Backend) -> Self {
+        Self::start_with(backend, |_| {})
+    }
+
+    /// A farm whose config `tune` adjusts first.
+    pub fn start_with(backend: Backend, tune: impl FnOnce(&mut coordinator::Config)) -> Self {
+        let db = TestDb::new(backend);
+        let mut cfg = db.config();
+        tune(&mut cfg);
+        let coord = Coordinator::start(cfg);
+        let client = Client::new(&coord.url());
+        Self { coord, client, db }
+    }
+
+    /// The coordinator's base URL.
+    pub fn url(&self) -> String {
+        self.coord.url()
+    }
+
+    /// [`Coordinator::restart`], with a fresh client (the old one's pooled connection died
+    /// with the coordinator).
+    pub fn restart(&mut self) {
+        self.coord.restart();
+        self.client = Client::new(&self.coord.url());
+    }
+
+    /// Runs job `id` on `workers` fresh workers until it ends (asserting `done`), then
+    /// stops them.
+    pub fn finish(&self, id: i64, workers: usize, timeout: Duration) -> JobStatus {
+        let ws = start_workers(&self.url(), workers);
+        let status = self.client.wait_done(id, timeout);
+        stop_workers(ws);
+        status
+    }
+}
+
+/// A job run by two coordinators sharing one PostgreSQL database: see [`run_on_two_coordinators`].
+pub struct SharedRun {
+    /// The final status, read from coordinator B.
+    pub status: JobStatus,
+    /// The summaries of the worker of A and the worker of B.
+    pub workers: [worker::WorkerSummary; 2],
+    /// `image.exr`, downloaded from coordinator A.
+    pub exr: Vec<u8>,
+}
+
+/// Two coordinators A and B on one fresh PostgreSQL database and one worker on each:
+/// `spec` is submitted to A, its end awaited on B (asserted `done`), the workers stopped
+/// and the image downloaded from A.
+pub fn run_on_two_coordinators(spec: &serde_json::Value, timeout: Duration) -> SharedRun {
+    let db = TestDb::new(Backend::Postgres);
+    let a = Coordinator::start(db.config());
+    let b = Coordinator::start(db.config());
+    let id = Client::new(&a.url()).submit(spec);
+    let wa = Worker::start(&a.url(), "wa");
+    let wb = Worker::start(&b.url(), "wb");
+    let status = Client::new(&b.url()).wait_done(id, timeout);
+    let workers = [wa.stop(), wb.stop()];
+    let exr = Client::new(&a.url()).download(id, "image.exr");
+    SharedRun {
+        status,
+        workers,
+        exr,
+    }
+}
+
+/// A worker driven by hand through raw HTTP (registered with the enrollment token).
+pub struct FakeWorker {
+    /// A client with the worker's token.
+    pub c: Client,
+    wait_ms: u64,
+}
+
+impl FakeWorker {
+    /// Registers as `fake`; its leases long-poll for `wait_ms`.
+    pub fn register(url: &str, wait_ms: u64) -> Self {
+        let enrol = Client::with_token(url, Some(ENROLL_TOKEN));
+        let r = enrol.request(
+            "POST",
+            "/v1/workers/register",
+            Some(br#"{"name":"fake"}"#.to_vec()),
+        );
+        assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+        let token = r.json()["token"].as_str().expect("token").to_owned();
+        Self {
+            c: Client::with_token(url, Some(&token)),
+            wait_ms,
+        }
+    }
+
+    /// `POST /v1/workers/lease`: `Some` on 200, `None` on 204; panics otherwise.
+    pub fn lease(&self) -> Option<TaskLease> {
+        let body = serde_json::json!({ "wait_ms": self.wait_ms });
+        let r = self.c.request(
+            "POST",
+            "/v1/workers/lease",
+            Some(serde_json::to_vec(&body).expect("json")),
+        );
+        match r.status {
+            200 => Some(serde_json::from_slice(&r.body).expect("lease")),
+            204 => None,
+            s => panic!("lease: {s} {}", String::from_utf8_lossy(&r.body)),
+        }
+    }
+
+    /// `PUT /v1/tasks/{task}/result?attempt={attempt}`.
+    pub fn upload(&self, task: i64, attempt: u32, body: Vec<u8>) -> Resp {
+        self.c.request(
+            "PUT",
+            &format!("/v1/tasks/{task}/result?attempt={attempt}"),
+            Some(body),
+        )
+    }
+
+    /// `POST /v1/tasks/{task}/heartbeat?attempt={attempt}`.
+    pub fn heartbeat(&self, task: i64, attempt: u32) -> Resp {
+        self.c.request(
+            "POST",
+            &format!("/v1/tasks/{task}/heartbeat?attempt={attempt}"),
+            None,
+        )
+    }
+
+    /// `POST /v1/tasks/{id}/fail?attempt={attempt}` of a lease; panics unless 200.
+    pub fn fail(&self, l: &TaskLease, reason: &str) {
+        let r = self.c.request(
+            "POST",
+            &format!("/v1/tasks/{}/fail?attempt={}", l.task_id, l.attempt),
+            Some(reason.as_bytes().to_vec()),
+        );
+        assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    }
+}
+
+/// The frame header of a lease's tile (its job, task, attempt, rectangle and samples).
+pub fn tile_header(l: &TaskLease) -> TileHeader {
+    TileHeader {
+        job_id: l.job_id,
+        task_id: l.task_id,
+        attempt: l.attempt,
+        rect: l.rect,
+        sample_start: l.sample_start,
+        sample_end: l.sample_end,
+    }
+}
+
+/// A result of a lease's tile with every pixel equal to `pixel` and no cells.
+pub fn blank_result(l: &TaskLease, pixel: PixelRecord) -> TileResult {
+    TileResult {
+        header: tile_header(l),
+        pixels: vec![pixel; l.rect.pixel_count()],
+        cells: vec![],
+    }
+}
+
+/// A worker's `Prepared` scene of an inline scene without assets.
+pub fn prepared(
+    scene: &serde_json::Value,
+    job: &protocol::job::ResolvedJob,
+    estimator: &protocol::job::EstimatorSpec,
+) -> worker::tile::Prepared {
+    worker::tile::Prepared::new(
+        &serde_json::to_vec(scene).expect("json"),
+        std::collections::BTreeMap::new(),
+        job,
+        estimator,
+    )
+    .expect("prepare")
 }
 
 /// Path of a file in the repository's `scenes/` directory.
@@ -451,13 +691,13 @@ pub fn scene_json(rel: &str) -> serde_json::Value {
     serde_json::from_str(&text).expect("scene JSON")
 }
 
-/// The EXR an in-process `render::tile::render_image` produces for the same job (the
-/// reference the farm must equal bit for bit): scene + overrides, film layers, `imageio`.
-pub fn local_exr(
+/// The scene of a job as the in-process references render it (scene + assets, the job's
+/// resolution) and the job's render settings (the scene's default estimator).
+pub fn local_scene(
     scene: &serde_json::Value,
     assets: &[(&str, Vec<u8>)],
     job: &protocol::job::ResolvedJob,
-) -> Vec<u8> {
+) -> (scene::LoadedScene, render::integrator::RenderSettings) {
     let desc: scene::SceneDesc = serde_json::from_value(scene.clone()).expect("scene desc");
     let mut mem = scene::MemoryAssets::new();
     for (n, b) in assets {
@@ -474,12 +714,19 @@ pub fn local_exr(
         hide_emitters: job.hide_emitters,
         ..render::integrator::RenderSettings::from_scene(&loaded.scene)
     };
-    let rs = render::integrator::RenderScene::new(&loaded.scene, &settings).expect("prepare");
-    let opts = render::tile::RenderOptions {
+    (loaded, settings)
+}
+
+/// Render options of the in-process references (the image does not depend on them).
+pub fn local_options() -> render::tile::RenderOptions {
+    render::tile::RenderOptions {
         tile_size: 8,
         threads: 2,
-    };
-    let (film, _) = render::tile::render_image(&rs, &settings, &opts, &|_, _| {}).expect("render");
+    }
+}
+
+/// The EXR of a film's layers at the job's resolution.
+pub fn film_exr(film: &render::film::Film, job: &protocol::job::ResolvedJob) -> Vec<u8> {
     let layers: Vec<imageio::RgbLayer> = film
         .layers()
         .into_iter()
@@ -489,4 +736,18 @@ pub fn local_exr(
         })
         .collect();
     imageio::encode_exr(job.width, job.height, &layers).expect("exr")
+}
+
+/// The EXR an in-process `render::tile::render_image` produces for the same job (the
+/// reference the farm must equal bit for bit): scene + overrides, film layers, `imageio`.
+pub fn local_exr(
+    scene: &serde_json::Value,
+    assets: &[(&str, Vec<u8>)],
+    job: &protocol::job::ResolvedJob,
+) -> Vec<u8> {
+    let (loaded, settings) = local_scene(scene, assets, job);
+    let rs = render::integrator::RenderScene::new(&loaded.scene, &settings).expect("prepare");
+    let (film, _) =
+        render::tile::render_image(&rs, &settings, &local_options(), &|_, _| {}).expect("render");
+    film_exr(&film, job)
 }

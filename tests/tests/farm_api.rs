@@ -3,7 +3,7 @@
 
 use std::time::Duration;
 
-use e2e::{Backend, Client, Coordinator, ENROLL_TOKEN, TestDb, Worker, local_exr, scene_json};
+use e2e::{Backend, Client, FakeWorker, Farm, blank_result, local_exr, scene_json};
 use protocol::TileResult;
 use protocol::frame::{PixelRecord, TileHeader};
 use protocol::lease::{JobState, TaskLease};
@@ -17,90 +17,36 @@ fn small_spec(spp: u32) -> serde_json::Value {
     })
 }
 
-/// A worker driven by hand through raw HTTP.
-struct FakeWorker {
-    c: Client,
+/// A frame of a lease's tile under `attempt`: zero sums, the lease's sample count.
+fn frame(l: &TaskLease, attempt: u32) -> Vec<u8> {
+    let pixel = PixelRecord {
+        count: u64::from(l.sample_end - l.sample_start),
+        ..Default::default()
+    };
+    let r = blank_result(l, pixel);
+    TileResult {
+        header: TileHeader {
+            attempt,
+            ..r.header
+        },
+        ..r
+    }
+    .encode()
 }
 
-impl FakeWorker {
-    fn register(url: &str) -> Self {
-        let enrol = Client::with_token(url, Some(ENROLL_TOKEN));
-        let r = enrol.request(
-            "POST",
-            "/v1/workers/register",
-            Some(br#"{"name":"fake"}"#.to_vec()),
-        );
-        assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
-        let token = r.json()["token"].as_str().expect("token").to_owned();
-        Self {
-            c: Client::with_token(url, Some(&token)),
-        }
-    }
-
-    fn lease(&self) -> Option<TaskLease> {
-        let r = self.c.request(
-            "POST",
-            "/v1/workers/lease",
-            Some(br#"{"wait_ms":1000}"#.to_vec()),
-        );
-        match r.status {
-            200 => Some(serde_json::from_slice(&r.body).expect("lease")),
-            204 => None,
-            s => panic!("lease: {s} {}", String::from_utf8_lossy(&r.body)),
-        }
-    }
-
-    fn frame(l: &TaskLease, attempt: u32) -> Vec<u8> {
-        let n = l.rect.pixel_count();
-        TileResult {
-            header: TileHeader {
-                job_id: l.job_id,
-                task_id: l.task_id,
-                attempt,
-                rect: l.rect,
-                sample_start: l.sample_start,
-                sample_end: l.sample_end,
-            },
-            pixels: vec![
-                PixelRecord {
-                    count: u64::from(l.sample_end - l.sample_start),
-                    ..Default::default()
-                };
-                n
-            ],
-            cells: vec![],
-        }
-        .encode()
-    }
-
-    fn upload(&self, task: i64, attempt: u32, body: Vec<u8>) -> e2e::Resp {
-        self.c.request(
-            "PUT",
-            &format!("/v1/tasks/{task}/result?attempt={attempt}"),
-            Some(body),
-        )
-    }
-
-    fn heartbeat(&self, task: i64, attempt: u32) -> e2e::Resp {
-        self.c.request(
-            "POST",
-            &format!("/v1/tasks/{task}/heartbeat?attempt={attempt}"),
-            None,
-        )
-    }
-}
+/// Long-poll of a fake worker's leases.
+const WAIT_MS: u64 = 1_000;
 
 #[test]
 fn stale_attempt_is_rejected_and_accepted_upload_is_idempotent() {
-    let db = TestDb::new(Backend::Sqlite);
-    let mut cfg = db.config();
-    cfg.lease_ms = 400;
-    cfg.max_attempts = 10;
-    let coord = Coordinator::start(cfg);
-    let client = Client::new(&coord.url());
+    let farm = Farm::start_with(Backend::Sqlite, |cfg| {
+        cfg.lease_ms = 400;
+        cfg.max_attempts = 10;
+    });
+    let (coord, client) = (&farm.coord, &farm.client);
     let job = client.submit(&small_spec(2));
-    let a = FakeWorker::register(&coord.url());
-    let b = FakeWorker::register(&coord.url());
+    let a = FakeWorker::register(&farm.url(), WAIT_MS);
+    let b = FakeWorker::register(&farm.url(), WAIT_MS);
 
     let la = a.lease().expect("a leases");
     assert_eq!(la.attempt, 1);
@@ -128,23 +74,23 @@ fn stale_attempt_is_rejected_and_accepted_upload_is_idempotent() {
     );
 
     // A's late upload and heartbeat name a superseded attempt.
-    let r = a.upload(la.task_id, 1, FakeWorker::frame(&la, 1));
+    let r = a.upload(la.task_id, 1, frame(&la, 1));
     assert_eq!(r.status, 409);
     assert_eq!(r.api_error().code, "stale_attempt");
     assert_eq!(a.heartbeat(la.task_id, 1).status, 409);
     // A cannot upload B's attempt either (not its lease).
-    let r = a.upload(lb.task_id, 2, FakeWorker::frame(&lb, 2));
+    let r = a.upload(lb.task_id, 2, frame(&lb, 2));
     assert_eq!(r.status, 409, "{}", String::from_utf8_lossy(&r.body));
 
     // B's upload is accepted; repeating it is a no-op.
-    let r = b.upload(lb.task_id, 2, FakeWorker::frame(&lb, 2));
+    let r = b.upload(lb.task_id, 2, frame(&lb, 2));
     assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
     assert_eq!(r.json()["duplicate"], false);
-    let r = b.upload(lb.task_id, 2, FakeWorker::frame(&lb, 2));
+    let r = b.upload(lb.task_id, 2, frame(&lb, 2));
     assert_eq!(r.status, 200);
     assert_eq!(r.json()["duplicate"], true);
     // A frame whose header names another attempt than the query is refused.
-    let r = b.upload(lb.task_id, 2, FakeWorker::frame(&lb, 3));
+    let r = b.upload(lb.task_id, 2, frame(&lb, 3));
     assert_eq!(r.status, 400);
     let n = coord
         .block_on(coord.state.store.result_count(job))
@@ -154,13 +100,12 @@ fn stale_attempt_is_rejected_and_accepted_upload_is_idempotent() {
 
 #[test]
 fn bad_input_is_4xx_json_naming_the_problem() {
-    let db = TestDb::new(Backend::Sqlite);
-    let mut cfg = db.config();
-    cfg.max_json_body = 64 << 10;
-    cfg.max_result_body = 32 << 10;
-    let coord = Coordinator::start(cfg);
-    let url = coord.url();
-    let client = Client::new(&url);
+    let farm = Farm::start_with(Backend::Sqlite, |cfg| {
+        cfg.max_json_body = 64 << 10;
+        cfg.max_result_body = 32 << 10;
+    });
+    let url = farm.url();
+    let client = &farm.client;
 
     // A valid job first: it must survive everything below.
     let good = client.submit(&small_spec(2));
@@ -340,27 +285,16 @@ fn bad_input_is_4xx_json_naming_the_problem() {
     );
 
     // Worker-side: truncated and non-finite frames.
-    let fw = FakeWorker::register(&url);
+    let fw = FakeWorker::register(&url, WAIT_MS);
     let l = fw.lease().expect("lease");
-    let full = FakeWorker::frame(&l, l.attempt);
+    let full = frame(&l, l.attempt);
     check(
         fw.upload(l.task_id, l.attempt, full[..full.len() - 3].to_vec()),
         400,
         "invalid_frame",
         "truncated",
     );
-    let mut bad = TileResult {
-        header: TileHeader {
-            job_id: l.job_id,
-            task_id: l.task_id,
-            attempt: l.attempt,
-            rect: l.rect,
-            sample_start: l.sample_start,
-            sample_end: l.sample_end,
-        },
-        pixels: vec![PixelRecord::default(); l.rect.pixel_count()],
-        cells: vec![],
-    };
+    let mut bad = blank_result(&l, PixelRecord::default());
     bad.pixels[5].sum[1] = f64::NAN;
     check(
         fw.upload(l.task_id, l.attempt, bad.encode()),
@@ -386,10 +320,7 @@ fn bad_input_is_4xx_json_naming_the_problem() {
     assert_eq!(fw.upload(l.task_id, l.attempt, full).status, 200);
 
     // Nothing accepted was lost: the good job completes with real workers.
-    let w = Worker::start(&url, "w");
-    let st = client.wait(good, Duration::from_secs(60));
-    assert_eq!(st.state, JobState::Done);
-    w.stop();
+    farm.finish(good, 1, Duration::from_secs(60));
     let jobs = client.request("GET", "/v1/jobs", None).json();
     assert_eq!(
         jobs.as_array().map(Vec::len),
@@ -399,19 +330,17 @@ fn bad_input_is_4xx_json_naming_the_problem() {
 }
 
 fn restart_mid_job(backend: Backend) {
-    let db = TestDb::new(backend);
-    let mut cfg = db.config();
-    cfg.lease_ms = 3_000;
-    cfg.heartbeat_ms = 500;
-    let mut coord = Coordinator::start(cfg);
-    let url = coord.url();
-    let client = Client::new(&url);
+    let mut farm = Farm::start_with(backend, |cfg| {
+        cfg.lease_ms = 3_000;
+        cfg.heartbeat_ms = 500;
+    });
+    let client = &farm.client;
     let scene = scene_json("cornell-box/scene.json");
     let spec = serde_json::json!({
         "scene": { "inline": scene }, "resolution": [48, 48], "spp": 128, "tile_size": 8, "seed": 5,
     });
     let id = client.submit(&spec);
-    let w = Worker::start(&url, "w");
+    let ws = e2e::start_workers(&farm.url(), 1);
     // Kill the coordinator once some, but not all, tiles are done.
     loop {
         let s = client.status(id);
@@ -425,18 +354,16 @@ fn restart_mid_job(backend: Backend) {
         }
         std::thread::sleep(Duration::from_millis(5));
     }
-    coord.restart();
-    let client = Client::new(&coord.url());
-    let status = client.wait(id, Duration::from_secs(180));
-    assert_eq!(status.state, JobState::Done, "{status:?}");
-    w.stop();
+    farm.restart();
+    let (coord, client) = (&farm.coord, &farm.client);
+    let status = client.wait_done(id, Duration::from_secs(180));
+    e2e::stop_workers(ws);
     // Nothing lost, nothing finished stored twice.
     let stored = coord
         .block_on(coord.state.store.result_count(id))
         .expect("count");
     assert_eq!(stored as u64, status.tasks_total);
-    let stats: serde_json::Value =
-        serde_json::from_slice(&client.download(id, "stats.json")).expect("stats");
+    let stats = client.stats(id);
     // At most the lease answered while the coordinator died is taken again.
     assert!(
         stats["attempts"].as_u64().unwrap() <= status.tasks_total + 1,
@@ -449,27 +376,18 @@ fn restart_mid_job(backend: Backend) {
     );
 }
 
-#[test]
-fn coordinator_killed_and_restarted_mid_job_completes_sqlite() {
-    restart_mid_job(Backend::Sqlite);
-}
-
-#[test]
-fn coordinator_killed_and_restarted_mid_job_completes_postgres() {
-    restart_mid_job(Backend::Postgres);
-}
+e2e::backend_tests!(restart_mid_job: coordinator_killed_and_restarted_mid_job_completes_sqlite, coordinator_killed_and_restarted_mid_job_completes_postgres);
 
 #[test]
 fn priorities_first_then_fifo_and_cancel_stops_leasing() {
-    let db = TestDb::new(Backend::Sqlite);
-    let coord = Coordinator::start(db.config());
-    let client = Client::new(&coord.url());
+    let farm = Farm::start(Backend::Sqlite);
+    let client = &farm.client;
     let a = client.submit(&small_spec(1));
     let b = client.submit(&small_spec(1));
     let mut urgent = small_spec(1);
     urgent["priority"] = serde_json::json!(5);
     let c = client.submit(&urgent);
-    let w = FakeWorker::register(&coord.url());
+    let w = FakeWorker::register(&farm.url(), WAIT_MS);
     // 16×16 in 8×8 tiles: 4 tasks per job. Highest priority first, then FIFO.
     let order: Vec<i64> = (0..7).map(|_| w.lease().expect("lease").job_id).collect();
     assert_eq!(order, [c, c, c, c, a, a, a]);
@@ -525,23 +443,15 @@ fn priorities_first_then_fifo_and_cancel_stops_leasing() {
 
 #[test]
 fn retry_cap_fails_the_job_and_a_failing_worker_is_blocked_for_it() {
-    let db = TestDb::new(Backend::Sqlite);
-    let mut cfg = db.config();
-    cfg.max_attempts = 3;
-    cfg.max_worker_failures = 2;
-    let coord = Coordinator::start(cfg);
-    let client = Client::new(&coord.url());
+    let farm = Farm::start_with(Backend::Sqlite, |cfg| {
+        cfg.max_attempts = 3;
+        cfg.max_worker_failures = 2;
+    });
+    let client = &farm.client;
     let job = client.submit(&small_spec(1));
-    let x = FakeWorker::register(&coord.url());
-    let y = FakeWorker::register(&coord.url());
-    let fail = |w: &FakeWorker, l: &TaskLease| {
-        let r = w.c.request(
-            "POST",
-            &format!("/v1/tasks/{}/fail?attempt={}", l.task_id, l.attempt),
-            Some(b"boom".to_vec()),
-        );
-        assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
-    };
+    let x = FakeWorker::register(&farm.url(), WAIT_MS);
+    let y = FakeWorker::register(&farm.url(), WAIT_MS);
+    let fail = |w: &FakeWorker, l: &TaskLease| w.fail(l, "boom");
     let l1 = x.lease().expect("lease");
     fail(&x, &l1);
     let l2 = x.lease().expect("lease");
@@ -566,11 +476,9 @@ fn retry_cap_fails_the_job_and_a_failing_worker_is_blocked_for_it() {
 
 #[test]
 fn health_metrics_openapi_and_docs_are_served() {
-    let db = TestDb::new(Backend::Postgres);
-    let coord = Coordinator::start(db.config());
-    let client = Client::new(&coord.url());
-    client.submit(&small_spec(1));
-    let anon = Client::with_token(&coord.url(), None);
+    let farm = Farm::start(Backend::Postgres);
+    farm.client.submit(&small_spec(1));
+    let anon = Client::with_token(&farm.url(), None);
     let r = anon.request("GET", "/healthz", None);
     assert_eq!((r.status, r.json()["status"].as_str()), (200, Some("ok")));
     let r = anon.request("GET", "/metrics", None);

@@ -4,12 +4,14 @@
 //! jobs complete with the in-process bits too; bad training uploads are 4xx JSON and the task
 //! is re-leasable; a coordinator restarted between train and render finishes identically.
 
-use std::collections::BTreeMap;
 use std::time::Duration;
 
-use e2e::{Backend, Client, Coordinator, ENROLL_TOKEN, TestDb, Worker, scene_json};
+use e2e::{
+    Backend, FakeWorker, Farm, Worker, film_exr, local_options, local_scene, prepared,
+    run_on_two_coordinators, scene_json, tile_header,
+};
 use protocol::job::{EstimatorSpec, ResolvedJob};
-use protocol::lease::{JobState, JobStatus, PhaseKind, TaskLease};
+use protocol::lease::{JobState, JobStatus, PhaseKind};
 
 fn spec(scene: &serde_json::Value, estimator: serde_json::Value, seed: u64) -> serde_json::Value {
     serde_json::json!({
@@ -30,41 +32,25 @@ fn local_cv_exr(
     estimator: &serde_json::Value,
     job: &ResolvedJob,
 ) -> Vec<u8> {
-    let desc: scene::SceneDesc = serde_json::from_value(scene.clone()).expect("scene desc");
-    let mut loaded = scene::load(&desc, &scene::MemoryAssets::new()).expect("scene loads");
-    loaded.scene.film.width = job.width;
-    loaded.scene.film.height = job.height;
+    let (loaded, settings) = local_scene(scene, &[], job);
     let est: render::integrator::Estimator =
         serde_json::from_value(estimator.clone()).expect("render estimator");
     let settings = render::integrator::RenderSettings {
-        spp: job.spp,
-        seed: job.seed,
-        max_depth: job.max_depth,
-        rr_depth: job.rr_depth,
-        hide_emitters: job.hide_emitters,
         estimator: est,
-        ..render::integrator::RenderSettings::from_scene(&loaded.scene)
+        ..settings
     };
     let rs = render::integrator::RenderScene::new(&loaded.scene, &settings).expect("prepare");
-    let opts = render::tile::RenderOptions {
-        tile_size: 8,
-        threads: 2,
-    };
-    let (film, _, report) =
-        render::integrator::cv::render_estimator_image(&rs, &settings, &opts, &|_, _| {})
-            .expect("render");
+    let (film, _, report) = render::integrator::cv::render_estimator_image(
+        &rs,
+        &settings,
+        &local_options(),
+        &|_, _| {},
+    )
+    .expect("render");
     if est.has_phases() {
         assert!(report.cells > 0, "{report:?}");
     }
-    let layers: Vec<imageio::RgbLayer> = film
-        .layers()
-        .into_iter()
-        .map(|l| imageio::RgbLayer {
-            name: l.name.to_owned(),
-            data: l.data,
-        })
-        .collect();
-    imageio::encode_exr(job.width, job.height, &layers).expect("exr")
+    film_exr(&film, job)
 }
 
 struct Run {
@@ -74,9 +60,9 @@ struct Run {
     coefficients: Vec<u8>,
 }
 
-fn run_job(db: &TestDb, workers: usize, spec: &serde_json::Value) -> Run {
-    let coord = Coordinator::start(db.config());
-    let client = Client::new(&coord.url());
+fn run_job(backend: Backend, workers: usize, spec: &serde_json::Value) -> Run {
+    let farm = Farm::start(backend);
+    let client = &farm.client;
     let id = client.submit(spec);
     // Before the train barrier there is no coefficient table.
     let early = client.request("GET", &format!("/v1/jobs/{id}/coefficients"), None);
@@ -87,21 +73,13 @@ fn run_job(db: &TestDb, workers: usize, spec: &serde_json::Value) -> Run {
         String::from_utf8_lossy(&early.body)
     );
     assert_eq!(early.api_error().code, "not_found");
-    let ws: Vec<Worker> = (0..workers)
-        .map(|i| Worker::start(&coord.url(), &format!("w{i}")))
-        .collect();
-    let status = client.wait(id, Duration::from_secs(300));
-    assert_eq!(status.state, JobState::Done, "{status:?}");
-    let run = Run {
+    let status = farm.finish(id, workers, Duration::from_secs(300));
+    Run {
         exr: client.download(id, "image.exr"),
-        stats: serde_json::from_slice(&client.download(id, "stats.json")).expect("stats"),
+        stats: client.stats(id),
         coefficients: client.download(id, "coefficients"),
         status,
-    };
-    for w in ws {
-        w.stop();
     }
-    run
 }
 
 /// stats.json of a CV job: every phase with its spp, the train barrier with its cells and
@@ -147,8 +125,8 @@ fn cms_one_vs_three(backend: Backend) {
     let scene = scene_json("cornell-box/scene.json");
     let est = serde_json::json!({ "kind": "cms" });
     let spec = spec(&scene, est.clone(), 7);
-    let one = run_job(&TestDb::new(backend), 1, &spec);
-    let three = run_job(&TestDb::new(backend), 3, &spec);
+    let one = run_job(backend, 1, &spec);
+    let three = run_job(backend, 3, &spec);
     assert!(one.exr == three.exr, "1-worker and 3-worker EXRs differ");
     assert!(
         one.coefficients == three.coefficients,
@@ -166,20 +144,11 @@ fn cms_one_vs_three(backend: Backend) {
     assert!(beauty.data.iter().any(|p| p[0] > 0.0));
 }
 
-#[test]
-fn cms_one_and_three_workers_bitwise_identical_and_equal_to_local_sqlite() {
-    cms_one_vs_three(Backend::Sqlite);
-}
-
-#[test]
-fn cms_one_and_three_workers_bitwise_identical_and_equal_to_local_postgres() {
-    cms_one_vs_three(Backend::Postgres);
-}
+e2e::backend_tests!(cms_one_vs_three: cms_one_and_three_workers_bitwise_identical_and_equal_to_local_sqlite, cms_one_and_three_workers_bitwise_identical_and_equal_to_local_postgres);
 
 #[test]
 fn per_light_cv_and_optimal_mis_jobs_complete_with_local_bits() {
     let scene = scene_json("cornell-box/scene.json");
-    let db = TestDb::new(Backend::Sqlite);
     for (est, seed) in [
         (serde_json::json!({ "kind": "per_light_cv" }), 3),
         (
@@ -187,7 +156,7 @@ fn per_light_cv_and_optimal_mis_jobs_complete_with_local_bits() {
             5,
         ),
     ] {
-        let run = run_job(&db, 2, &spec(&scene, est.clone(), seed));
+        let run = run_job(Backend::Sqlite, 2, &spec(&scene, est.clone(), seed));
         let train = if est["kind"] == "per_light_cv" { 16 } else { 8 };
         check_stats(&run, &[("train", train), ("render", 24 - train)]);
         assert!(
@@ -200,15 +169,11 @@ fn per_light_cv_and_optimal_mis_jobs_complete_with_local_bits() {
 #[test]
 fn ocv_job_renders_in_one_phase_with_local_bits() {
     let scene = scene_json("cornell-box/scene.json");
-    let db = TestDb::new(Backend::Sqlite);
     let est = serde_json::json!({ "kind": "ocv", "spe": 4 });
-    let coord = Coordinator::start(db.config());
-    let client = Client::new(&coord.url());
+    let farm = Farm::start(Backend::Sqlite);
+    let client = &farm.client;
     let id = client.submit(&spec(&scene, est.clone(), 6));
-    let w = Worker::start(&coord.url(), "w");
-    let status = client.wait(id, Duration::from_secs(300));
-    assert_eq!(status.state, JobState::Done, "{status:?}");
-    w.stop();
+    let status = farm.finish(id, 1, Duration::from_secs(300));
     assert_eq!(status.phase, PhaseKind::Render);
     // One-pass estimators have no coefficient table.
     let r = client.request("GET", &format!("/v1/jobs/{id}/coefficients"), None);
@@ -216,78 +181,25 @@ fn ocv_job_renders_in_one_phase_with_local_bits() {
     assert!(client.download(id, "image.exr") == local_cv_exr(&scene, &est, &status.job));
 }
 
-/// A worker driven by hand through raw HTTP.
-struct FakeWorker {
-    c: Client,
-}
-
-impl FakeWorker {
-    fn register(url: &str) -> Self {
-        let enrol = Client::with_token(url, Some(ENROLL_TOKEN));
-        let r = enrol.request(
-            "POST",
-            "/v1/workers/register",
-            Some(br#"{"name":"fake"}"#.to_vec()),
-        );
-        assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
-        let token = r.json()["token"].as_str().expect("token").to_owned();
-        Self {
-            c: Client::with_token(url, Some(&token)),
-        }
-    }
-
-    fn lease(&self) -> TaskLease {
-        let r = self.c.request(
-            "POST",
-            "/v1/workers/lease",
-            Some(br#"{"wait_ms":2000}"#.to_vec()),
-        );
-        assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
-        serde_json::from_slice(&r.body).expect("lease")
-    }
-
-    fn upload(&self, l: &TaskLease, body: Vec<u8>) -> e2e::Resp {
-        self.c.request(
-            "PUT",
-            &format!("/v1/tasks/{}/result?attempt={}", l.task_id, l.attempt),
-            Some(body),
-        )
-    }
-}
-
 #[test]
 fn bad_train_uploads_are_4xx_json_and_the_task_is_redone() {
-    let db = TestDb::new(Backend::Sqlite);
-    let coord = Coordinator::start(db.config());
-    let client = Client::new(&coord.url());
+    let farm = Farm::start(Backend::Sqlite);
+    let (coord, client) = (&farm.coord, &farm.client);
     let scene = scene_json("cornell-box/scene.json");
     // Without `relative` the train phase comes first.
     let est = serde_json::json!({ "kind": "cms", "relative": false });
     let id = client.submit(&spec(&scene, est.clone(), 2));
-    let fake = FakeWorker::register(&coord.url());
-    let l = fake.lease();
+    let fake = FakeWorker::register(&coord.url(), 2_000);
+    let l = fake.lease().expect("lease");
     assert_eq!(l.phase, PhaseKind::Train);
     assert_eq!(
         (l.surrogate.as_deref(), l.coefficients.as_deref()),
         (None, None)
     );
     // A genuine training result of the leased tile, rendered the way a worker does.
-    let prepared = worker::tile::Prepared::new(
-        &serde_json::to_vec(&scene).expect("json"),
-        BTreeMap::new(),
-        &l.job,
-        &l.estimator,
-    )
-    .expect("prepare");
+    let prepared = prepared(&scene, &l.job, &l.estimator);
     assert!(matches!(l.estimator, EstimatorSpec::Cms(_)));
-    let header = protocol::frame::TileHeader {
-        job_id: l.job_id,
-        task_id: l.task_id,
-        attempt: l.attempt,
-        rect: l.rect,
-        sample_start: l.sample_start,
-        sample_end: l.sample_end,
-    };
+    let header = tile_header(&l);
     let good = prepared
         .render_task(header, PhaseKind::Train, &Default::default())
         .expect("train tile");
@@ -315,7 +227,7 @@ fn bad_train_uploads_are_4xx_json_and_the_task_is_redone() {
         ("no block", with(&|r| r.cells.clear())),
     ];
     for (what, body) in bad {
-        let r = fake.upload(&l, body);
+        let r = fake.upload(l.task_id, l.attempt, body);
         assert_eq!(
             r.status,
             422,
@@ -333,11 +245,11 @@ fn bad_train_uploads_are_4xx_json_and_the_task_is_redone() {
     );
     // The task is still the fake's lease: its genuine result is accepted and fixes the
     // job's cell layout.
-    let r = fake.upload(&l, good.encode());
+    let r = fake.upload(l.task_id, l.attempt, good.encode());
     assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
     // The other training tile, with every record claiming one more light component: a
     // well-formed block of another layout than the accepted one.
-    let l2 = fake.lease();
+    let l2 = fake.lease().expect("lease");
     assert_eq!(l2.phase, PhaseKind::Train);
     let header2 = protocol::frame::TileHeader {
         task_id: l2.task_id,
@@ -360,7 +272,7 @@ fn bad_train_uploads_are_4xx_json_and_the_task_is_redone() {
         data[p..p + 4].copy_from_slice(&(partitions + 1).to_le_bytes());
         at += 12 + len;
     }
-    let r = fake.upload(&l2, other.encode());
+    let r = fake.upload(l2.task_id, l2.attempt, other.encode());
     assert_eq!(r.status, 422, "{}", String::from_utf8_lossy(&r.body));
     let e = r.api_error();
     assert!(
@@ -374,16 +286,8 @@ fn bad_train_uploads_are_4xx_json_and_the_task_is_redone() {
             .expect("count"),
         1
     );
-    let r = fake.c.request(
-        "POST",
-        &format!("/v1/tasks/{}/fail?attempt={}", l2.task_id, l2.attempt),
-        Some(b"bad cells".to_vec()),
-    );
-    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
-    let w = Worker::start(&coord.url(), "w");
-    let status = client.wait(id, Duration::from_secs(300));
-    assert_eq!(status.state, JobState::Done, "{status:?}");
-    w.stop();
+    fake.fail(&l2, "bad cells");
+    let status = farm.finish(id, 1, Duration::from_secs(300));
     let t = coord
         .block_on(coord.state.store.task(l2.task_id))
         .expect("store")
@@ -394,23 +298,15 @@ fn bad_train_uploads_are_4xx_json_and_the_task_is_redone() {
 
 #[test]
 fn coordinator_restart_between_train_and_render_finishes_identically() {
-    let db = TestDb::new(Backend::Sqlite);
-    let mut coord = Coordinator::start(db.config());
-    let client = Client::new(&coord.url());
+    let mut farm = Farm::start(Backend::Sqlite);
     let scene = scene_json("cornell-box/scene.json");
     let est = serde_json::json!({ "kind": "cms", "relative": false, "training_spp": 8 });
-    let id = client.submit(&spec(&scene, est.clone(), 13));
+    let id = farm.client.submit(&spec(&scene, est.clone(), 13));
     // Render the whole train phase with a fake worker, so the barrier is due with no
     // worker around; then kill the coordinator before or after it ran.
-    let fake = FakeWorker::register(&coord.url());
-    let first = fake.lease();
-    let prepared = worker::tile::Prepared::new(
-        &serde_json::to_vec(&scene).expect("json"),
-        BTreeMap::new(),
-        &first.job,
-        &first.estimator,
-    )
-    .expect("prepare");
+    let fake = FakeWorker::register(&farm.url(), 2_000);
+    let first = fake.lease().expect("lease");
+    let prepared = prepared(&scene, &first.job, &first.estimator);
     let train_tasks = protocol::job::plan_phases(&first.job, &first.estimator)[0]
         .tasks
         .len();
@@ -418,51 +314,29 @@ fn coordinator_restart_between_train_and_render_finishes_identically() {
     let mut uploaded = 0;
     while let Some(l) = lease.take() {
         assert_eq!(l.phase, PhaseKind::Train);
-        let header = protocol::frame::TileHeader {
-            job_id: l.job_id,
-            task_id: l.task_id,
-            attempt: l.attempt,
-            rect: l.rect,
-            sample_start: l.sample_start,
-            sample_end: l.sample_end,
-        };
         let r = prepared
-            .render_task(header, PhaseKind::Train, &Default::default())
+            .render_task(tile_header(&l), PhaseKind::Train, &Default::default())
             .expect("train tile");
-        let up = fake.upload(&l, r.encode());
+        let up = fake.upload(l.task_id, l.attempt, r.encode());
         assert_eq!(up.status, 200, "{}", String::from_utf8_lossy(&up.body));
         uploaded += 1;
         if uploaded < train_tasks {
-            lease = Some(fake.lease());
+            lease = Some(fake.lease().expect("lease"));
         }
     }
-    coord.restart();
-    // A fresh client: the old one's pooled connection died with the coordinator.
-    let client = Client::new(&coord.url());
-    let w = Worker::start(&coord.url(), "after-restart");
-    let status = client.wait(id, Duration::from_secs(300));
-    assert_eq!(status.state, JobState::Done, "{status:?}");
-    w.stop();
-    assert!(client.download(id, "image.exr") == local_cv_exr(&scene, &est, &status.job));
+    // The restart comes with a fresh client: the old one's connection died with it.
+    farm.restart();
+    let status = farm.finish(id, 1, Duration::from_secs(300));
+    assert!(farm.client.download(id, "image.exr") == local_cv_exr(&scene, &est, &status.job));
 }
 
 #[test]
 fn cms_on_two_coordinators_sharing_one_postgres() {
-    let db = TestDb::new(Backend::Postgres);
-    let a = Coordinator::start(db.config());
-    let b = Coordinator::start(db.config());
     let scene = scene_json("cornell-box/scene.json");
     let est = serde_json::json!({ "kind": "cms" });
-    let id = Client::new(&a.url()).submit(&spec(&scene, est.clone(), 21));
-    let wa = Worker::start(&a.url(), "wa");
-    let wb = Worker::start(&b.url(), "wb");
     // Both coordinators may run a barrier; exactly one advances the job each time.
-    let status = Client::new(&b.url()).wait(id, Duration::from_secs(300));
-    assert_eq!(status.state, JobState::Done, "{status:?}");
-    wa.stop();
-    wb.stop();
-    let farm = Client::new(&a.url()).download(id, "image.exr");
-    assert!(farm == local_cv_exr(&scene, &est, &status.job));
+    let run = run_on_two_coordinators(&spec(&scene, est.clone(), 21), Duration::from_secs(300));
+    assert!(run.exr == local_cv_exr(&scene, &est, &run.status.job));
 }
 
 /// The image of a `path` job of `spp` samples split by `spt`, assembled in-process.
@@ -477,30 +351,15 @@ fn local_path_image(
         samples_per_task: spt,
         ..*job
     };
-    let p = worker::tile::Prepared::new(
-        &serde_json::to_vec(scene).expect("json"),
-        BTreeMap::new(),
-        &j,
-        &EstimatorSpec::default(),
-    )
-    .expect("prepare");
+    let p = prepared(scene, &j, &EstimatorSpec::default());
     worker::tile::render_local(&p, &j).expect("render")
 }
 
-#[test]
-fn target_rel_mse_stops_after_the_first_round_that_meets_it_sqlite() {
-    target_rel_mse_stops(Backend::Sqlite);
-}
-
-#[test]
-fn target_rel_mse_stops_after_the_first_round_that_meets_it_postgres() {
-    target_rel_mse_stops(Backend::Postgres);
-}
+e2e::backend_tests!(target_rel_mse_stops: target_rel_mse_stops_after_the_first_round_that_meets_it_sqlite, target_rel_mse_stops_after_the_first_round_that_meets_it_postgres);
 
 fn target_rel_mse_stops(backend: Backend) {
-    let db = TestDb::new(backend);
-    let coord = Coordinator::start(db.config());
-    let client = Client::new(&coord.url());
+    let farm = Farm::start(backend);
+    let client = &farm.client;
     let scene = scene_json("cornell-box/scene.json");
     let mut s = serde_json::json!({
         "scene": { "inline": scene },
@@ -526,17 +385,9 @@ fn target_rel_mse_stops(backend: Backend) {
     let target = local_path_image(&scene, &resolved, 32, 4).estimated_rel_mse();
     s["target_rel_mse"] = serde_json::json!(target);
     let id = client.submit(&s);
-    let ws: Vec<Worker> = (0..2)
-        .map(|i| Worker::start(&coord.url(), &format!("w{i}")))
-        .collect();
-    let status = client.wait(id, Duration::from_secs(300));
-    assert_eq!(status.state, JobState::Done, "{status:?}");
-    for w in ws {
-        w.stop();
-    }
+    let status = farm.finish(id, 2, Duration::from_secs(300));
     assert_eq!(status.job.max_depth, resolved.max_depth);
-    let stats: serde_json::Value =
-        serde_json::from_slice(&client.download(id, "stats.json")).expect("stats");
+    let stats = client.stats(id);
     let spp = stats["spp"].as_f64().expect("spp") as u32;
     assert!(spp.is_multiple_of(4) && (4..=32).contains(&spp), "{stats}");
     assert!(stats["estimated_rel_mse"].as_f64().expect("rel") <= target);
@@ -564,9 +415,8 @@ fn target_rel_mse_stops(backend: Backend) {
 
 #[test]
 fn time_budget_ends_the_job_before_the_spp_cap() {
-    let db = TestDb::new(Backend::Sqlite);
-    let coord = Coordinator::start(db.config());
-    let client = Client::new(&coord.url());
+    let farm = Farm::start(Backend::Sqlite);
+    let client = &farm.client;
     let scene = scene_json("cornell-box/scene.json");
     let id = client.submit(&serde_json::json!({
         "scene": { "inline": scene },
@@ -576,7 +426,7 @@ fn time_budget_ends_the_job_before_the_spp_cap() {
         "tile_size": 16,
         "time_budget_s": 1.0,
     }));
-    let w = Worker::start(&coord.url(), "w");
+    let w = Worker::start(&farm.url(), "w");
     let mut saw_eta = false;
     let status = loop {
         let st = client.status(id);
@@ -589,8 +439,7 @@ fn time_budget_ends_the_job_before_the_spp_cap() {
     assert_eq!(status.state, JobState::Done, "{status:?}");
     w.stop();
     assert!(saw_eta, "a running budget job has an ETA");
-    let stats: serde_json::Value =
-        serde_json::from_slice(&client.download(id, "stats.json")).expect("stats");
+    let stats = client.stats(id);
     let spp = stats["spp"].as_f64().expect("spp");
     assert!((4.0..65536.0).contains(&spp) && spp % 4.0 == 0.0, "{stats}");
 }

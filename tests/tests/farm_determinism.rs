@@ -4,8 +4,10 @@
 
 use std::time::Duration;
 
-use e2e::{Backend, Client, Coordinator, TestDb, Worker, local_exr, scene_json};
-use protocol::lease::JobState;
+use e2e::{
+    Backend, Client, Coordinator, Farm, TestDb, Worker, local_exr, run_on_two_coordinators,
+    scene_json,
+};
 
 fn spec(scene: &serde_json::Value, res: u32, spp: u32, tile: u32, seed: u64) -> serde_json::Value {
     serde_json::json!({
@@ -19,37 +21,29 @@ fn spec(scene: &serde_json::Value, res: u32, spp: u32, tile: u32, seed: u64) -> 
 }
 
 fn run_job(
-    db: &TestDb,
+    backend: Backend,
     workers: usize,
     spec: &serde_json::Value,
 ) -> (Vec<u8>, protocol::lease::JobStatus) {
-    let coord = Coordinator::start(db.config());
-    let client = Client::new(&coord.url());
+    let farm = Farm::start(backend);
+    let client = &farm.client;
     let id = client.submit(spec);
-    let ws: Vec<Worker> = (0..workers)
-        .map(|i| Worker::start(&coord.url(), &format!("w{i}")))
-        .collect();
-    let status = client.wait(id, Duration::from_secs(120));
-    assert_eq!(status.state, JobState::Done, "{status:?}");
+    let status = farm.finish(id, workers, Duration::from_secs(120));
     let exr = client.download(id, "image.exr");
     let png = client.download(id, "preview.png");
     assert_eq!(&png[1..4], b"PNG");
-    let stats: serde_json::Value =
-        serde_json::from_slice(&client.download(id, "stats.json")).expect("stats");
+    let stats = client.stats(id);
     assert_eq!(stats["tasks"].as_u64(), Some(status.tasks_total));
     assert_eq!(stats["spp"].as_f64(), Some(f64::from(status.job.spp)));
     assert!(stats["estimated_rel_mse"].as_f64().expect("rel mse") > 0.0);
-    for w in ws {
-        w.stop();
-    }
     (exr, status)
 }
 
 fn one_vs_three(backend: Backend) {
     let scene = scene_json("cornell-box/scene.json");
     let spec = spec(&scene, 32, 8, 8, 7);
-    let (one, status) = run_job(&TestDb::new(backend), 1, &spec);
-    let (three, _) = run_job(&TestDb::new(backend), 3, &spec);
+    let (one, status) = run_job(backend, 1, &spec);
+    let (three, _) = run_job(backend, 3, &spec);
     assert!(one == three, "1-worker and 3-worker EXRs differ");
     let local = local_exr(&scene, &[], &status.job);
     assert!(one == local, "farm EXR differs from the in-process render");
@@ -59,21 +53,12 @@ fn one_vs_three(backend: Backend) {
     assert!(beauty.data.iter().any(|p| p[0] > 0.0));
 }
 
-#[test]
-fn one_and_three_workers_bitwise_identical_sqlite() {
-    one_vs_three(Backend::Sqlite);
-}
-
-#[test]
-fn one_and_three_workers_bitwise_identical_postgres() {
-    one_vs_three(Backend::Postgres);
-}
+e2e::backend_tests!(one_vs_three: one_and_three_workers_bitwise_identical_sqlite, one_and_three_workers_bitwise_identical_postgres);
 
 #[test]
 fn scene_with_uploaded_asset_renders_identically() {
-    let db = TestDb::new(Backend::Sqlite);
-    let coord = Coordinator::start(db.config());
-    let client = Client::new(&coord.url());
+    let farm = Farm::start(Backend::Sqlite);
+    let client = &farm.client;
     let scene = scene_json("envmap/scene.json");
     let exr_bytes = std::fs::read(e2e::scene_path("envmap/museum.exr")).expect("museum.exr");
     let hash = client.upload_asset(&exr_bytes);
@@ -89,22 +74,18 @@ fn scene_with_uploaded_asset_renders_identically() {
     s["scene"] = serde_json::json!({ "bundle": bundle });
     s["assets"] = serde_json::json!({ name.clone(): hash });
     let id = client.submit(&s);
-    let w = Worker::start(&coord.url(), "w");
-    let status = client.wait(id, Duration::from_secs(120));
-    assert_eq!(status.state, JobState::Done, "{status:?}");
-    let farm = client.download(id, "image.exr");
-    w.stop();
-    assert!(farm == local_exr(&scene, &[(&name, exr_bytes)], &status.job));
+    let status = farm.finish(id, 1, Duration::from_secs(120));
+    let image = client.download(id, "image.exr");
+    assert!(image == local_exr(&scene, &[(&name, exr_bytes)], &status.job));
 }
 
 #[test]
 fn killed_worker_lease_expires_and_another_redoes_it() {
-    let db = TestDb::new(Backend::Sqlite);
-    let mut cfg = db.config();
-    cfg.lease_ms = 1_500;
-    cfg.heartbeat_ms = 300;
-    let coord = Coordinator::start(cfg);
-    let client = Client::new(&coord.url());
+    let farm = Farm::start_with(Backend::Sqlite, |cfg| {
+        cfg.lease_ms = 1_500;
+        cfg.heartbeat_ms = 300;
+    });
+    let (coord, client) = (&farm.coord, &farm.client);
     let scene = scene_json("cornell-box/scene.json");
     let spec = spec(&scene, 32, 64, 8, 11);
     let id = client.submit(&spec);
@@ -112,17 +93,16 @@ fn killed_worker_lease_expires_and_another_redoes_it() {
     let mut victim = Worker::start(&coord.url(), "victim");
     // Wait until the victim holds a lease, then kill it mid-tile.
     let leased_task = loop {
-        let t: Option<i64> = coord.block_on(leased_task_of(&coord, id));
+        let t: Option<i64> = coord.block_on(leased_task_of(coord, id));
         if let Some(t) = t {
             break t;
         }
         std::thread::sleep(Duration::from_millis(5));
     };
     victim.kill();
-    let held_at_kill: Option<(i64, i64)> = coord.block_on(lease_holder(&coord, leased_task));
+    let held_at_kill: Option<(i64, i64)> = coord.block_on(lease_holder(coord, leased_task));
     let rescuer = Worker::start(&coord.url(), "rescuer");
-    let status = client.wait(id, Duration::from_secs(120));
-    assert_eq!(status.state, JobState::Done, "{status:?}");
+    let status = client.wait_done(id, Duration::from_secs(120));
     rescuer.stop();
     if let Some((attempt, _worker)) = held_at_kill {
         // The killed attempt expired and the task was redone by a later attempt.
@@ -135,9 +115,9 @@ fn killed_worker_lease_expires_and_another_redoes_it() {
             "task {leased_task} was not redone after the kill"
         );
     }
-    let farm = client.download(id, "image.exr");
+    let image = client.download(id, "image.exr");
     assert!(
-        farm == local_exr(&scene, &[], &status.job),
+        image == local_exr(&scene, &[], &status.job),
         "image differs after a redone tile"
     );
 }
@@ -169,13 +149,12 @@ async fn lease_holder(coord: &Coordinator, task: i64) -> Option<(i64, i64)> {
 
 #[test]
 fn graceful_worker_stop_finishes_the_tile_in_hand() {
-    let db = TestDb::new(Backend::Sqlite);
-    let coord = Coordinator::start(db.config());
-    let client = Client::new(&coord.url());
+    let farm = Farm::start(Backend::Sqlite);
+    let (coord, client) = (&farm.coord, &farm.client);
     let scene = scene_json("cornell-box/scene.json");
     let id = client.submit(&spec(&scene, 32, 1024, 16, 1));
     let w = Worker::start(&coord.url(), "w");
-    while coord.block_on(leased_task_of(&coord, id)).is_none() {
+    while coord.block_on(leased_task_of(coord, id)).is_none() {
         std::thread::sleep(Duration::from_millis(5));
     }
     // Let the lease reach the worker (a lease arriving after the stop is released instead).
@@ -184,13 +163,9 @@ fn graceful_worker_stop_finishes_the_tile_in_hand() {
     assert!(summary.uploaded + summary.released >= 1, "{summary:?}");
     assert_eq!(summary.stale, 0);
     // Nothing is left leased by the stopped worker: every lease was finished or released.
-    assert_eq!(coord.block_on(leased_task_of(&coord, id)), None);
-    let w2 = Worker::start(&coord.url(), "w2");
-    let status = client.wait(id, Duration::from_secs(120));
-    assert_eq!(status.state, JobState::Done);
-    w2.stop();
-    let stats: serde_json::Value =
-        serde_json::from_slice(&client.download(id, "stats.json")).expect("stats");
+    assert_eq!(coord.block_on(leased_task_of(coord, id)), None);
+    let status = farm.finish(id, 1, Duration::from_secs(120));
+    let stats = client.stats(id);
     // No tile was rendered twice: one attempt per task, plus one per lease released unrendered.
     assert_eq!(
         stats["attempts"].as_u64(),
@@ -207,24 +182,16 @@ fn graceful_worker_stop_finishes_the_tile_in_hand() {
 
 #[test]
 fn two_coordinators_share_one_postgres() {
-    let db = TestDb::new(Backend::Postgres);
-    let a = Coordinator::start(db.config());
-    let b = Coordinator::start(db.config());
     let scene = scene_json("cornell-box/scene.json");
-    let id = Client::new(&a.url()).submit(&spec(&scene, 32, 16, 8, 4));
-    let wa = Worker::start(&a.url(), "wa");
-    let wb = Worker::start(&b.url(), "wb");
     // Either coordinator answers for the job.
-    let status = Client::new(&b.url()).wait(id, Duration::from_secs(120));
-    assert_eq!(status.state, JobState::Done, "{status:?}");
-    let (sa, sb) = (wa.stop(), wb.stop());
+    let run = run_on_two_coordinators(&spec(&scene, 32, 16, 8, 4), Duration::from_secs(120));
+    let [sa, sb] = &run.workers;
     assert_eq!(
         sa.uploaded + sb.uploaded,
-        status.tasks_total,
+        run.status.tasks_total,
         "{sa:?} {sb:?}"
     );
-    let farm = Client::new(&a.url()).download(id, "image.exr");
-    assert!(farm == local_exr(&scene, &[], &status.job));
+    assert!(run.exr == local_exr(&scene, &[], &run.status.job));
 }
 
 #[test]
@@ -242,7 +209,6 @@ fn worker_started_before_the_coordinator_connects_with_back_off() {
     let client = Client::new(&coord.url());
     let scene = scene_json("cornell-box/scene.json");
     let id = client.submit(&spec(&scene, 16, 4, 8, 2));
-    let status = client.wait(id, Duration::from_secs(60));
-    assert_eq!(status.state, JobState::Done);
+    let status = client.wait_done(id, Duration::from_secs(60));
     assert_eq!(w.stop().uploaded, status.tasks_total);
 }

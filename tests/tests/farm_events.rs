@@ -5,8 +5,7 @@
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
-use e2e::{Backend, CLIENT_TOKEN, Client, Coordinator, TestDb, Worker, scene_json};
-use protocol::lease::JobState;
+use e2e::{Backend, CLIENT_TOKEN, Client, Coordinator, Farm, TestDb, Worker, scene_json};
 
 /// One received event.
 #[derive(Clone, Debug)]
@@ -125,14 +124,21 @@ fn spec(res: u32, spp: u32, per_task: u32) -> serde_json::Value {
     })
 }
 
+/// The data rows of a `convergence.csv` (header skipped), as numbers.
+fn csv_rows(csv: &str) -> Vec<Vec<f64>> {
+    csv.lines()
+        .skip(1)
+        .map(|l| l.split(',').map(|x| x.parse().expect("number")).collect())
+        .collect()
+}
+
 fn is_end(e: &SseEvent, job: i64) -> bool {
     e.kind == "job" && e.job() == job && e.data["state"] != "running" && e.data["state"] != "paused"
 }
 
 fn events_follow_jobs(backend: Backend) {
-    let db = TestDb::new(backend);
-    let coord = Coordinator::start(db.config());
-    let client = Client::new(&coord.url());
+    let farm = Farm::start(backend);
+    let (coord, client) = (&farm.coord, &farm.client);
     // Two jobs queued before any worker; one stream for all jobs, one for job b only.
     let a = client.submit(&spec(16, 4, 2));
     let b = client.submit(&spec(16, 4, 2));
@@ -195,15 +201,7 @@ fn events_follow_jobs(backend: Backend) {
     );
 }
 
-#[test]
-fn events_follow_jobs_from_running_to_done_sqlite() {
-    events_follow_jobs(Backend::Sqlite);
-}
-
-#[test]
-fn events_follow_jobs_from_running_to_done_postgres() {
-    events_follow_jobs(Backend::Postgres);
-}
+e2e::backend_tests!(events_follow_jobs: events_follow_jobs_from_running_to_done_sqlite, events_follow_jobs_from_running_to_done_postgres);
 
 #[test]
 fn events_reject_bad_tokens_unknown_jobs_and_bad_ids() {
@@ -238,36 +236,29 @@ fn events_reject_bad_tokens_unknown_jobs_and_bad_ids() {
 }
 
 fn convergence(backend: Backend) {
-    let db = TestDb::new(backend);
-    let coord = Coordinator::start(db.config());
-    let client = Client::new(&coord.url());
+    let farm = Farm::start(backend);
+    let client = &farm.client;
     // 4 tiles × 4 sample ranges of 2: 4 rounds.
     let id = client.submit(&spec(16, 8, 2));
     // Before any worker: a running job has a series with no completed round yet.
-    let early = String::from_utf8(client.download(id, "convergence.csv")).expect("utf-8");
+    let early = client.download_text(id, "convergence.csv");
     assert_eq!(early, "seconds,spp,rel_mse_est,tasks_done\n");
-    let w = Worker::start(&coord.url(), "w");
-    let status = client.wait(id, Duration::from_secs(120));
-    w.stop();
-    assert_eq!(status.state, JobState::Done, "{status:?}");
-    let csv = String::from_utf8(client.download(id, "convergence.csv")).expect("utf-8");
-    let mut lines = csv.lines();
-    assert_eq!(lines.next(), Some("seconds,spp,rel_mse_est,tasks_done"));
-    let rows: Vec<[f64; 4]> = lines
-        .map(|l| {
-            let v: Vec<f64> = l.split(',').map(|x| x.parse().expect("number")).collect();
-            [v[0], v[1], v[2], v[3]]
-        })
-        .collect();
+    farm.finish(id, 1, Duration::from_secs(120));
+    let csv = client.download_text(id, "convergence.csv");
+    assert_eq!(
+        csv.lines().next(),
+        Some("seconds,spp,rel_mse_est,tasks_done")
+    );
+    let rows = csv_rows(&csv);
     assert_eq!(rows.len(), 4, "{csv}");
+    assert!(rows.iter().all(|r| r.len() == 4), "{csv}");
     for w in rows.windows(2) {
         assert!(w[1][1] > w[0][1], "spp must increase: {csv}");
         assert!(w[1][0] >= w[0][0], "time must not decrease: {csv}");
         assert!(w[1][3] > w[0][3], "tasks must increase: {csv}");
     }
     let last = rows.last().expect("rows");
-    let stats: serde_json::Value =
-        serde_json::from_slice(&client.download(id, "stats.json")).expect("stats");
+    let stats = client.stats(id);
     assert_eq!(last[1], 8.0);
     assert_eq!(last[3], 16.0);
     // Merged in the canonical order finish uses: the very same estimate.
@@ -279,23 +270,14 @@ fn convergence(backend: Backend) {
     assert!(last[0] <= stats["total_seconds"].as_f64().expect("total") + 1e-9);
 }
 
-#[test]
-fn convergence_csv_has_one_row_per_round_sqlite() {
-    convergence(Backend::Sqlite);
-}
-
-#[test]
-fn convergence_csv_has_one_row_per_round_postgres() {
-    convergence(Backend::Postgres);
-}
+e2e::backend_tests!(convergence: convergence_csv_has_one_row_per_round_sqlite, convergence_csv_has_one_row_per_round_postgres);
 
 /// A `cms` job: the stream reports each phase (surrogate, train, render) and the coefficient
 /// table the train barrier announced, whose address is the one `/coefficients` serves; the
 /// convergence series has rounds of every phase and ends at the stats.json estimate.
 fn cms_events_and_convergence(backend: Backend) {
-    let db = TestDb::new(backend);
-    let coord = Coordinator::start(db.config());
-    let client = Client::new(&coord.url());
+    let farm = Farm::start(backend);
+    let (coord, client) = (&farm.coord, &farm.client);
     let mut s = spec(16, 24, 4);
     s["estimator"] = serde_json::json!({ "kind": "cms" });
     let id = client.submit(&s);
@@ -329,18 +311,13 @@ fn cms_events_and_convergence(backend: Backend) {
         );
     }
     // One row per round: per distinct (phase, sample range) of the job's tasks.
-    let rounds = coord.block_on(rounds_of(&coord, id));
+    let rounds = coord.block_on(rounds_of(coord, id));
     assert!(rounds >= 3, "a cms job has at least one round per phase");
-    let csv = String::from_utf8(client.download(id, "convergence.csv")).expect("utf-8");
-    let rows: Vec<Vec<f64>> = csv
-        .lines()
-        .skip(1)
-        .map(|l| l.split(',').map(|x| x.parse().expect("number")).collect())
-        .collect();
+    let csv = client.download_text(id, "convergence.csv");
+    let rows = csv_rows(&csv);
     assert_eq!(rows.len() as i64, rounds, "{csv}");
     assert!(rows.windows(2).all(|w| w[1][1] > w[0][1]), "{csv}");
-    let stats: serde_json::Value =
-        serde_json::from_slice(&client.download(id, "stats.json")).expect("stats");
+    let stats = client.stats(id);
     let last = rows.last().expect("rows");
     assert_eq!(Some(last[1]), stats["spp"].as_f64(), "{csv}\n{stats}");
     assert_eq!(
@@ -367,34 +344,21 @@ async fn rounds_of(coord: &Coordinator, job: i64) -> i64 {
     sqlx::Row::try_get(&row, "n").expect("count")
 }
 
-#[test]
-fn cms_job_announces_coefficients_sqlite() {
-    cms_events_and_convergence(Backend::Sqlite);
-}
-
-#[test]
-fn cms_job_announces_coefficients_postgres() {
-    cms_events_and_convergence(Backend::Postgres);
-}
+e2e::backend_tests!(cms_events_and_convergence: cms_job_announces_coefficients_sqlite, cms_job_announces_coefficients_postgres);
 
 /// A job whose error target is met by its first round: the later rounds are skipped, so the
 /// final progress counts only the tasks that ran and the series has the one round that did.
 #[test]
 fn early_stopped_job_reports_only_the_rounds_it_ran() {
-    let db = TestDb::new(Backend::Sqlite);
-    let coord = Coordinator::start(db.config());
-    let client = Client::new(&coord.url());
+    let farm = Farm::start(Backend::Sqlite);
+    let (coord, client) = (&farm.coord, &farm.client);
     let mut s = spec(16, 64, 4);
     s["target_rel_mse"] = serde_json::json!(1e9);
     let id = client.submit(&s);
     let stream = SseStream::open(&coord.url(), &format!("/v1/events?job={id}"), None);
-    let ws: Vec<Worker> = (0..2)
-        .map(|i| Worker::start(&coord.url(), &format!("w{i}")))
-        .collect();
+    let ws = e2e::start_workers(&coord.url(), 2);
     let seen = stream.until(Duration::from_secs(120), |e| is_end(e, id));
-    for w in ws {
-        w.stop();
-    }
+    e2e::stop_workers(ws);
     assert_eq!(seen.last().expect("events").data["state"], "done");
     let last = seen
         .iter()
@@ -405,14 +369,9 @@ fn early_stopped_job_reports_only_the_rounds_it_ran() {
         "{last:?}"
     );
     assert_eq!(last.data["tasks_total"].as_u64(), Some(4), "{last:?}");
-    let csv = String::from_utf8(client.download(id, "convergence.csv")).expect("utf-8");
-    let rows: Vec<Vec<f64>> = csv
-        .lines()
-        .skip(1)
-        .map(|l| l.split(',').map(|x| x.parse().expect("number")).collect())
-        .collect();
-    let stats: serde_json::Value =
-        serde_json::from_slice(&client.download(id, "stats.json")).expect("stats");
+    let csv = client.download_text(id, "convergence.csv");
+    let rows = csv_rows(&csv);
+    let stats = client.stats(id);
     assert_eq!(rows.len(), 1, "{csv}");
     assert_eq!(Some(rows[0][1]), stats["spp"].as_f64(), "{csv}\n{stats}");
     assert_eq!(rows[0][1], 4.0);

@@ -27,12 +27,13 @@
 
 use std::time::{Duration, Instant};
 
-use e2e::{Backend, Client, Coordinator, ENROLL_TOKEN, TestDb, Worker, scene_json};
+use e2e::{
+    Backend, Coordinator, ENROLL_TOKEN, Farm, blank_result, scene_json, start_workers, stop_workers,
+};
 use estimators::cell::{CellAccumulator, ColorMode, ComponentLayout, CvSample};
 use estimators::solve::{SolvePolicy, SolveStatus};
 use estimators::table::AccumulatorTable;
-use protocol::TileResult;
-use protocol::frame::{PixelRecord, TileHeader};
+use protocol::frame::PixelRecord;
 use protocol::lease::{JobState, TaskLease};
 
 fn arg(name: &str, default: usize) -> usize {
@@ -70,19 +71,7 @@ async fn sim_worker(url: String) -> u64 {
             return n;
         }
         let l: TaskLease = r.json().await.expect("lease json");
-        let body = TileResult {
-            header: TileHeader {
-                job_id: l.job_id,
-                task_id: l.task_id,
-                attempt: l.attempt,
-                rect: l.rect,
-                sample_start: l.sample_start,
-                sample_end: l.sample_end,
-            },
-            pixels: vec![PixelRecord::default(); l.rect.pixel_count()],
-            cells: vec![],
-        }
-        .encode();
+        let body = blank_result(&l, PixelRecord::default()).encode();
         let r = http
             .put(format!(
                 "{url}/v1/tasks/{}/result?attempt={}",
@@ -99,9 +88,8 @@ async fn sim_worker(url: String) -> u64 {
 }
 
 fn queue_throughput(backend: Backend, sims: usize, tasks: usize) {
-    let db = TestDb::new(backend);
-    let coord = Coordinator::start(db.config());
-    let client = Client::new(&coord.url());
+    let farm = Farm::start(backend);
+    let (coord, client) = (&farm.coord, &farm.client);
     let side = (tasks as f64).sqrt().ceil() as u32 * 8;
     let id = client.submit(&serde_json::json!({
         "scene": {"inline": scene_json("cornell-box/scene.json")},
@@ -143,12 +131,9 @@ fn overhead(backend: Backend) {
         "scene": {"inline": scene}, "resolution": [res, res], "spp": spp, "tile_size": tile, "seed": 1,
     });
     let desc: scene::SceneDesc = serde_json::from_value(scene.clone()).expect("desc");
-    let db = TestDb::new(backend);
-    let coord = Coordinator::start(db.config());
-    let client = Client::new(&coord.url());
-    let ws: Vec<Worker> = (0..2)
-        .map(|i| Worker::start(&coord.url(), &format!("w{i}")))
-        .collect();
+    let testfarm = Farm::start(backend);
+    let client = &testfarm.client;
+    let ws = start_workers(&testfarm.url(), 2);
     std::thread::sleep(Duration::from_millis(300)); // workers registered and polling
     // The machine may be shared: alternate the two and keep the best of each.
     let (mut local, mut farm, mut tasks) = (f64::INFINITY, f64::INFINITY, 0);
@@ -178,9 +163,7 @@ fn overhead(backend: Backend) {
         assert_eq!(st.state, JobState::Done);
         tasks = st.tasks_total;
     }
-    for w in ws {
-        w.stop();
-    }
+    stop_workers(ws);
     println!(
         "overhead [{backend:?}]: {res}x{res} cornell-box {spp} spp, {tasks} tiles of {tile}, best of 3: in-process 2 threads {local:.3} s, \
          farm 2 workers x 1 slot {farm:.3} s (submit to done, incl. assembly) => overhead {:+.1} %",
@@ -324,12 +307,9 @@ fn merge_solve(sims: usize, tiles: usize, cells: usize, samples: usize) {
 
 /// A real `cms` job on a loopback farm; prints the train barrier's throughput and the phases.
 fn cms_job(backend: Backend, workers: usize, scene: &str, res: u32, spp: u32) {
-    let db = TestDb::new(backend);
-    let coord = Coordinator::start(db.config());
-    let client = Client::new(&coord.url());
-    let ws: Vec<Worker> = (0..workers)
-        .map(|i| Worker::start(&coord.url(), &format!("w{i}")))
-        .collect();
+    let farm = Farm::start(backend);
+    let (coord, client) = (&farm.coord, &farm.client);
+    let ws = start_workers(&coord.url(), workers);
     let t0 = Instant::now();
     let id = client.submit(&serde_json::json!({
         "scene": {"inline": scene_json(&format!("{scene}/scene.json"))},
@@ -338,12 +318,9 @@ fn cms_job(backend: Backend, workers: usize, scene: &str, res: u32, spp: u32) {
     }));
     let st = client.wait(id, Duration::from_secs(3600));
     let wall = t0.elapsed().as_secs_f64();
-    for w in ws {
-        w.stop();
-    }
+    stop_workers(ws);
     assert_eq!(st.state, JobState::Done, "{st:?}");
-    let stats: serde_json::Value =
-        serde_json::from_slice(&client.download(id, "stats.json")).expect("stats");
+    let stats = client.stats(id);
     let table = client.download(id, "coefficients");
     println!(
         "cms job [{backend:?}]: {scene} {res}x{res} {spp} spp, {workers} workers x 1 slot, submit to done {wall:.2} s; \
@@ -394,7 +371,7 @@ fn cms_job(backend: Backend, workers: usize, scene: &str, res: u32, spp: u32) {
         .as_array()
         .and_then(|ph| ph.iter().position(|p| p["name"] == "train"));
     if let Some(train) = train {
-        barrier_breakdown(&coord, id, train as i64);
+        barrier_breakdown(coord, id, train as i64);
     }
 }
 
