@@ -91,10 +91,15 @@ pub struct SubmitArgs {
     /// per_light_cv, optimal_mis (parsed exactly as by `cvfarm render`).
     #[arg(long, env = "CVFARM_ESTIMATOR", value_enum)]
     pub estimator: Option<crate::render_cmd::EstimatorArg>,
-    /// Estimator option `key=value` (repeatable; the value is JSON when it parses as JSON,
+    /// Estimator option `key=value` (repeatable, or several separated by `;`; the value is JSON when it parses as JSON,
     /// else a string), e.g. --opt grid_resolution=[8,8,8]. Unknown options are errors
     /// listing the valid ones.
-    #[arg(long = "opt", value_name = "KEY=VALUE")]
+    #[arg(
+        long = "opt",
+        env = "CVFARM_OPTS",
+        value_name = "KEY=VALUE",
+        value_delimiter = ';'
+    )]
     pub opts: Vec<String>,
     /// Estimator as JSON ({"kind":"cms","training_spp":32}) or @file.json.
     #[arg(long, env = "CVFARM_ESTIMATOR_JSON", value_name = "JSON|@FILE")]

@@ -90,8 +90,13 @@ pub struct RenderArgs {
     /// Estimator [default: path, or the kind of --estimator-json].
     #[arg(long, env = "CVFARM_ESTIMATOR", value_enum)]
     pub estimator: Option<EstimatorArg>,
-    /// Estimator option KEY=VALUE (repeatable), e.g. --opt spe=32.
-    #[arg(long = "opt", value_name = "KEY=VALUE")]
+    /// Estimator option KEY=VALUE (repeatable, or several separated by `;`), e.g. --opt spe=32.
+    #[arg(
+        long = "opt",
+        env = "CVFARM_OPTS",
+        value_name = "KEY=VALUE",
+        value_delimiter = ';'
+    )]
     pub opts: Vec<String>,
     /// Estimator as JSON ({"kind":"ocv","spe":32}) or @file.json.
     #[arg(long, env = "CVFARM_ESTIMATOR_JSON", value_name = "JSON|@FILE")]
