@@ -17,7 +17,7 @@ fn spec(scene: &serde_json::Value, estimator: serde_json::Value, seed: u64) -> s
     serde_json::json!({
         "scene": { "inline": scene },
         "estimator": estimator,
-        "resolution": [48, 32],
+        "resolution": [80, 32],
         "spp": 24,
         "tile_size": 16,
         "seed": seed,

@@ -802,20 +802,22 @@ mod tests {
         );
         assert_eq!(plan[0].tasks.len(), 3 * 2);
         // Training: tiles of TRAIN_TILE, the whole range in one task per tile.
-        assert_eq!(plan[1].tasks.len(), 2);
+        let (tx, ty) = (40u32.div_ceil(TRAIN_TILE), 24u32.div_ceil(TRAIN_TILE));
+        assert_eq!(plan[1].tasks.len(), (tx * ty) as usize);
         assert!(
             plan[1]
                 .tasks
                 .iter()
                 .all(|t| (t.sample_start, t.sample_end) == (1, 17))
         );
+        let x0 = (tx - 1) * TRAIN_TILE;
         assert_eq!(
-            plan[1].tasks[1].rect,
+            plan[1].tasks[tx as usize - 1].rect,
             TileRect {
-                x0: 32,
+                x0,
                 y0: 0,
-                width: 8,
-                height: 24
+                width: 40 - x0,
+                height: 24.min(TRAIN_TILE)
             }
         );
         // Render: 7 samples split by 3 → 3 ranges per tile.
