@@ -542,8 +542,11 @@ fn phase_shapes(job: &ResolvedJob, est: &EstimatorSpec) -> Vec<(PhaseKind, u32, 
     let mut out = Vec::with_capacity(3);
     // The surrogate exists only for relative-variance training [Hua eq. 25] (as in
     // `render::integrator::cv::CvJob::needs_surrogate`).
+    // Its tasks are 1–2 spp: tiles of at least TRAIN_TILE keep the per-task cost (lease,
+    // upload) small beside the rendering; a pixel's sums do not depend on the tiling.
     if p.relative() && !ph.surrogate.is_empty() {
-        out.push((PhaseKind::Surrogate, job.tile_size, ph.surrogate, spt));
+        let tile = job.tile_size.max(TRAIN_TILE);
+        out.push((PhaseKind::Surrogate, tile, ph.surrogate, spt));
     }
     // Training tiles are fixed and never split in samples: the canonical merge order of
     // the accumulators is independent of the job's tile size and of `samples_per_task`.
@@ -571,7 +574,7 @@ pub fn plan_task_count(job: &ResolvedJob, est: &EstimatorSpec) -> u64 {
 ///   `samples_per_task` (= [`plan_tasks`]);
 /// - `cms`, `per_light_cv`, `optimal_mis` (sample ranges from
 ///   [`PhasedEstimator::phases`]): `surrogate` (only for relative-variance `cms`; tiles of
-///   `tile_size`, split by `samples_per_task`), `train` (tiles of [`TRAIN_TILE`], the whole
+///   `max(tile_size, TRAIN_TILE)`, split by `samples_per_task`), `train` (tiles of [`TRAIN_TILE`], the whole
 ///   training range, one task per tile), `render` (tiles of `tile_size`, split by
 ///   `samples_per_task`). Phases without samples are left out.
 pub fn plan_phases(job: &ResolvedJob, est: &EstimatorSpec) -> Vec<PhasePlan> {
@@ -800,9 +803,10 @@ mod tests {
             kinds,
             [PhaseKind::Surrogate, PhaseKind::Train, PhaseKind::Render]
         );
-        assert_eq!(plan[0].tasks.len(), 3 * 2);
-        // Training: tiles of TRAIN_TILE, the whole range in one task per tile.
+        // Surrogate and training: tiles of (at least) TRAIN_TILE; training takes the whole
+        // range in one task per tile.
         let (tx, ty) = (40u32.div_ceil(TRAIN_TILE), 24u32.div_ceil(TRAIN_TILE));
+        assert_eq!(plan[0].tasks.len(), (tx * ty) as usize);
         assert_eq!(plan[1].tasks.len(), (tx * ty) as usize);
         assert!(
             plan[1]
