@@ -79,6 +79,40 @@ fn read_json(arg: &str) -> Result<Map<String, Value>, UsageError> {
     }
 }
 
+/// The estimator flags `cvfarm render` and `cvfarm submit` share (flattened into both), so a
+/// job means the same thing locally and on the farm.
+#[derive(Debug, Clone, clap::Args)]
+pub struct EstimatorArgs {
+    /// Estimator [default: path, or the kind of --estimator-json]: path, ocv, cms,
+    /// per_light_cv, optimal_mis.
+    #[arg(long, env = "CVFARM_ESTIMATOR", value_enum)]
+    pub estimator: Option<crate::render_cmd::EstimatorArg>,
+    /// Estimator option `key=value` (repeatable, or several separated by `;`; the value is
+    /// JSON when it parses as JSON, else a string), e.g. --opt spe=32 or
+    /// --opt grid_resolution=[8,8,8]. Unknown options are errors listing the valid ones.
+    #[arg(
+        long = "opt",
+        env = "CVFARM_OPTS",
+        value_name = "KEY=VALUE",
+        value_delimiter = ';'
+    )]
+    pub opts: Vec<String>,
+    /// Estimator as JSON ({"kind":"cms","training_spp":32}) or @file.json.
+    #[arg(long, env = "CVFARM_ESTIMATOR_JSON", value_name = "JSON|@FILE")]
+    pub estimator_json: Option<String>,
+}
+
+impl EstimatorArgs {
+    /// The estimator these flags select ([`build`]).
+    pub fn build(&self) -> Result<Estimator, UsageError> {
+        build(
+            self.estimator.map(crate::render_cmd::EstimatorArg::name),
+            self.estimator_json.as_deref(),
+            &self.opts,
+        )
+    }
+}
+
 /// Builds the estimator from `--estimator` (`kind`, if given), `--estimator-json` and the
 /// `--opt`s. Errors name the offending option and list the valid ones.
 pub fn build(

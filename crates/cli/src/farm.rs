@@ -87,23 +87,9 @@ pub struct SubmitArgs {
     /// Client bearer token.
     #[arg(long, env = "CVFARM_CLIENT_TOKEN", hide_env_values = true)]
     pub client_token: String,
-    /// Estimator [default: path, or the kind of --estimator-json]: path, ocv, cms,
-    /// per_light_cv, optimal_mis (parsed exactly as by `cvfarm render`).
-    #[arg(long, env = "CVFARM_ESTIMATOR", value_enum)]
-    pub estimator: Option<crate::render_cmd::EstimatorArg>,
-    /// Estimator option `key=value` (repeatable, or several separated by `;`; the value is JSON when it parses as JSON,
-    /// else a string), e.g. --opt grid_resolution=[8,8,8]. Unknown options are errors
-    /// listing the valid ones.
-    #[arg(
-        long = "opt",
-        env = "CVFARM_OPTS",
-        value_name = "KEY=VALUE",
-        value_delimiter = ';'
-    )]
-    pub opts: Vec<String>,
-    /// Estimator as JSON ({"kind":"cms","training_spp":32}) or @file.json.
-    #[arg(long, env = "CVFARM_ESTIMATOR_JSON", value_name = "JSON|@FILE")]
-    pub estimator_json: Option<String>,
+    /// Estimator selection.
+    #[command(flatten)]
+    pub estimator: crate::estimator_opts::EstimatorArgs,
     /// Sample range length per task (splits tiles in time) [default: spp].
     #[arg(long, env = "CVFARM_SAMPLES_PER_TASK")]
     pub samples_per_task: Option<u32>,
@@ -265,11 +251,7 @@ fn parse_res(s: &str) -> Result<[u32; 2]> {
 /// parsed and checked exactly as `cvfarm render` does ([`crate::estimator_opts::build`]), so
 /// a job means the same thing locally and on the farm. Every option is written out.
 fn estimator_json(args: &SubmitArgs) -> Result<serde_json::Value> {
-    let est = crate::estimator_opts::build(
-        args.estimator.map(crate::render_cmd::EstimatorArg::name),
-        args.estimator_json.as_deref(),
-        &args.opts,
-    )?;
+    let est = args.estimator.build()?;
     Ok(serde_json::to_value(est)?)
 }
 

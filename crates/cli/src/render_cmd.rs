@@ -87,20 +87,9 @@ pub struct RenderArgs {
         allow_hyphen_values = true
     )]
     pub res: Option<Resolution>,
-    /// Estimator [default: path, or the kind of --estimator-json].
-    #[arg(long, env = "CVFARM_ESTIMATOR", value_enum)]
-    pub estimator: Option<EstimatorArg>,
-    /// Estimator option KEY=VALUE (repeatable, or several separated by `;`), e.g. --opt spe=32.
-    #[arg(
-        long = "opt",
-        env = "CVFARM_OPTS",
-        value_name = "KEY=VALUE",
-        value_delimiter = ';'
-    )]
-    pub opts: Vec<String>,
-    /// Estimator as JSON ({"kind":"ocv","spe":32}) or @file.json.
-    #[arg(long, env = "CVFARM_ESTIMATOR_JSON", value_name = "JSON|@FILE")]
-    pub estimator_json: Option<String>,
+    /// Estimator selection.
+    #[command(flatten)]
+    pub estimator: crate::estimator_opts::EstimatorArgs,
     /// Render until this many seconds are spent (sample batches) instead of a fixed --spp.
     #[arg(long, env = "CVFARM_TIME_BUDGET", value_name = "SECONDS", conflicts_with = "spp",
           value_parser = parse_budget)]
@@ -241,11 +230,7 @@ pub fn settings(scene: &scene::Scene, args: &RenderArgs) -> Result<RenderSetting
             LightSelectionArg::Uniform => LightSelection::Uniform,
             LightSelectionArg::Power => LightSelection::Power,
         },
-        estimator: estimator_opts::build(
-            args.estimator.map(EstimatorArg::name),
-            args.estimator_json.as_deref(),
-            &args.opts,
-        )?,
+        estimator: args.estimator.build()?,
     };
     st.validate()?;
     Ok(st)
