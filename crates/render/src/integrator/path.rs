@@ -215,27 +215,23 @@ pub fn trace<O: VertexObserver>(
                 visible,
             });
         }
-        let nee_light = nee_sel.map(|(l, _)| l);
+        // What the observer gets for this vertex; the BSDF technique is filled in below.
+        let vertex = VertexRecord {
+            depth,
+            p: h.p,
+            ns: h.ns,
+            throughput: beta,
+            light: light_tech,
+            nee_light: nee_sel.map(|(l, _)| l),
+            bsdf: None,
+        };
 
         // ---- BSDF sampling ----
         let Some(bs) = bsdf_sample else {
-            report(
-                observer,
-                &mut radiance,
-                &VertexRecord {
-                    depth,
-                    p: h.p,
-                    ns: h.ns,
-                    throughput: beta,
-                    light: light_tech,
-                    nee_light,
-                    bsdf: None,
-                },
-            );
+            report(observer, &mut radiance, &vertex);
             break;
         };
         let wi = frame.to_world(bs.wi);
-        let throughput = beta;
         beta *= bs.weight;
 
         // ---- Russian roulette (before tracing, as Mitsuba) ----
@@ -266,19 +262,11 @@ pub fn trace<O: VertexObserver>(
             rr_q,
         };
         if !alive && !zero_weight_trace {
-            report(
-                observer,
-                &mut radiance,
-                &VertexRecord {
-                    depth: depth - 1,
-                    p: h.p,
-                    ns: h.ns,
-                    throughput,
-                    light: light_tech,
-                    nee_light,
-                    bsdf: Some(tech),
-                },
-            );
+            let vertex = VertexRecord {
+                bsdf: Some(tech),
+                ..vertex
+            };
+            report(observer, &mut radiance, &vertex);
             break;
         }
 
@@ -317,19 +305,11 @@ pub fn trace<O: VertexObserver>(
             };
             radiance += beta * tech.emitted * w;
         }
-        report(
-            observer,
-            &mut radiance,
-            &VertexRecord {
-                depth: depth - 1,
-                p: h.p,
-                ns: h.ns,
-                throughput,
-                light: light_tech,
-                nee_light,
-                bsdf: Some(tech),
-            },
-        );
+        let vertex = VertexRecord {
+            bsdf: Some(tech),
+            ..vertex
+        };
+        report(observer, &mut radiance, &vertex);
         if zero_weight_trace {
             break;
         }
