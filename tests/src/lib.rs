@@ -20,7 +20,7 @@
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
-use protocol::frame::{PixelRecord, TileHeader};
+use protocol::frame::PixelRecord;
 use protocol::lease::{JobState, JobStatus, TaskLease};
 use protocol::{ApiErrorBody, TileResult};
 use sqlx::Connection;
@@ -641,22 +641,10 @@ impl FakeWorker {
     }
 }
 
-/// The frame header of a lease's tile (its job, task, attempt, rectangle and samples).
-pub fn tile_header(l: &TaskLease) -> TileHeader {
-    TileHeader {
-        job_id: l.job_id,
-        task_id: l.task_id,
-        attempt: l.attempt,
-        rect: l.rect,
-        sample_start: l.sample_start,
-        sample_end: l.sample_end,
-    }
-}
-
 /// A result of a lease's tile with every pixel equal to `pixel` and no cells.
 pub fn blank_result(l: &TaskLease, pixel: PixelRecord) -> TileResult {
     TileResult {
-        header: tile_header(l),
+        header: l.tile_header(),
         pixels: vec![pixel; l.rect.pixel_count()],
         cells: vec![],
     }

@@ -8,7 +8,7 @@ use std::time::Duration;
 
 use e2e::{
     Backend, FakeWorker, Farm, Worker, film_exr, local_options, local_scene, prepared,
-    run_on_two_coordinators, scene_json, tile_header,
+    run_on_two_coordinators, scene_json,
 };
 use protocol::job::{EstimatorSpec, ResolvedJob};
 use protocol::lease::{JobState, JobStatus, PhaseKind};
@@ -199,7 +199,7 @@ fn bad_train_uploads_are_4xx_json_and_the_task_is_redone() {
     // A genuine training result of the leased tile, rendered the way a worker does.
     let prepared = prepared(&scene, &l.job, &l.estimator);
     assert!(matches!(l.estimator, EstimatorSpec::Cms(_)));
-    let header = tile_header(&l);
+    let header = l.tile_header();
     let good = prepared
         .render_task(header, PhaseKind::Train, &Default::default())
         .expect("train tile");
@@ -315,7 +315,7 @@ fn coordinator_restart_between_train_and_render_finishes_identically() {
     while let Some(l) = lease.take() {
         assert_eq!(l.phase, PhaseKind::Train);
         let r = prepared
-            .render_task(tile_header(&l), PhaseKind::Train, &Default::default())
+            .render_task(l.tile_header(), PhaseKind::Train, &Default::default())
             .expect("train tile");
         let up = fake.upload(l.task_id, l.attempt, r.encode());
         assert_eq!(up.status, 200, "{}", String::from_utf8_lossy(&up.body));

@@ -25,6 +25,7 @@ use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 
+use crate::frame::TileHeader;
 use crate::job::{EstimatorSpec, ResolvedJob, TileRect};
 
 /// Body of `POST /v1/workers/register` (bearer: the enrollment token).
@@ -127,6 +128,20 @@ pub struct TaskLease {
     pub lease_ms: u64,
     /// How often to heartbeat while working, in milliseconds.
     pub heartbeat_ms: u64,
+}
+
+impl TaskLease {
+    /// The frame header of this lease's result (job, task, attempt, rectangle, samples).
+    pub fn tile_header(&self) -> TileHeader {
+        TileHeader {
+            job_id: self.job_id,
+            task_id: self.task_id,
+            attempt: self.attempt,
+            rect: self.rect,
+            sample_start: self.sample_start,
+            sample_end: self.sample_end,
+        }
+    }
 }
 
 /// Answer to a heartbeat.

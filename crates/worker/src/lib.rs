@@ -37,7 +37,6 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::Duration;
 
-use protocol::frame::TileHeader;
 use protocol::hash::sha256_hex;
 use protocol::lease::{LeaseRequest, RegisterRequest, RegisterResponse, TaskLease};
 use reqwest::StatusCode;
@@ -458,14 +457,7 @@ impl Inner {
             self.counters.stale.fetch_add(1, Ordering::Relaxed);
             return;
         }
-        let header = TileHeader {
-            job_id: l.job_id,
-            task_id: l.task_id,
-            attempt: l.attempt,
-            rect: l.rect,
-            sample_start: l.sample_start,
-            sample_end: l.sample_end,
-        };
+        let header = l.tile_header();
         let phase = l.phase;
         let rendered =
             tokio::task::spawn_blocking(move || prepared.render_task(header, phase, &inputs)).await;
