@@ -94,10 +94,10 @@ impl PhaseSamples {
 /// |---|---|---|---|
 /// | `spe` | u32 | 16 | samples per estimate (per vertex gather), ≥ 1 |
 /// | `lambda` | f64 | 1.0 | ridge penalty λ [Fan eq. 11] |
-/// | `bsdf_share` | f64 | 0.5 | mixture weight of the BSDF component (the rest is split equally among the light components), in [0, 1] |
-/// | `penalize_intercept` | bool | false | literal [Fan eq. 11]: also penalise β0 |
-/// | `optimize` | bool | true | false: plain deterministic-mixture estimate [Fan eq. 6] |
-/// | `max_light_components` | u32 | 16 | above this many lights, all lights form one component |
+/// | `bsdf_share` | f64 | 0.5 | mixture weight α of the BSDF component (the rest is split equally among the light components), in [0, 1] |
+/// | `penalize_intercept` | bool | false | literal [Fan eq. 11]: also penalise β0 (shrinks each estimate by ≈ λ/(N+λ); see [`crate::ocv`]) |
+/// | `optimize` | bool | true | false: plain deterministic-mixture estimate [Fan eq. 6] (Fan's MIS baseline) |
+/// | `max_light_components` | u32 | 16 | with more lights than this, all lights form **one** component sampled by the light selection (Fan §7's advice for many lights) |
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct OcvOptions {
@@ -211,7 +211,7 @@ impl Default for CmsOptions {
 /// | parameter | type | default | meaning |
 /// |---|---|---|---|
 /// | `training_spp` | u32 | 16 | samples per pixel of the training phase (kept in the image) |
-/// | `grid_resolution` | `[nx, ny, nz]` \| null | null | cells per axis; null = adaptive |
+/// | `grid_resolution` | `[nx, ny, nz]` \| null | null | cells per axis; null = adaptive (≈ 16×16 pixels per cell) |
 /// | `max_light_components` | u32 | 1024 | more emitters than this are clustered by spatial proximity |
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]

@@ -1,6 +1,6 @@
 //! Ray–scene intersection: one BVH over every triangle of every mesh plus the analytic
 //! spheres. Scenes of up to [`WIDE_MAX_PRIMS`] primitives use our own 8-wide BVH with SoA
-//! triangle packets ([`wide`]); larger ones obvhs' CWBVH (8-wide compressed BVH), with the
+//! triangle packets (`accel/wide.rs`); larger ones obvhs' CWBVH (8-wide compressed BVH), with the
 //! triangles and spheres intersected in its traversal closure. Both use the same triangle test
 //! and return the same hits ([`AccelKind`] forces one for tests and benchmarks).
 //!

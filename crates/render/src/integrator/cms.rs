@@ -16,19 +16,14 @@
 //! `relative`) → train → solve → render; training samples are kept in the image.
 //! See `cv.rs` for the measures and the handling of zero-contribution samples.
 //!
-//! | parameter | type | default | meaning |
-//! |---|---|---|---|
-//! | `relative` | bool | `true` | optimise relative variance: weight training samples by `1/(surrogate + 0.01)²` [Hua eq. 25] |
-//! | `color` | `"rgb"` \| `"mono"` | `"rgb"` | coefficients per channel or shared [Hua §4.3] |
-//! | `training_spp` | u32 | 16 | samples per pixel of the training phase (kept in the image) |
-//! | `surrogate_spp` | u32 | 1 | samples per pixel of the surrogate image (only with `relative`; kept in the image) |
-//! | `grid_resolution` | `[nx, ny, nz]` \| null | null | cells per axis over the scene bounds; null = adaptive (≈ 16×16 pixels per cell) |
-//! | `max_light_components` | u32 | 1024 | more emitters than this are clustered by spatial proximity |
-//! | `ridge` | f64 | `1e-6` | relative Tikhonov regularisation of each cell system |
-//! | `min_samples` | u64 | 16 | cells with fewer training samples fall back to the plain estimator |
+//! Options (defaults, ranges, meaning): the table of [`CmsOptions`] (defined once, in
+//! `estimators::spec`, for the CLI, the farm's API and the renderer). With the default
+//! `base: "mis"` each sample's `F_s` is the job's MIS-weighted value (power heuristic, as
+//! `path`), so a cell with `α ≡ 0` renders exactly like `path`; `base: "balance"` is the
+//! paper's `F_s = f/p`. The CV term has zero mean for either base.
 //!
 //! ```json
-//! { "kind": "cms", "relative": true, "color": "rgb", "training_spp": 16, "grid_resolution": [32, 32, 32] }
+//! { "kind": "cms", "relative": true, "color": "rgb", "training_spp": 16, "grid_resolution": [32, 32, 32], "ridge": 1.0, "base": "mis" }
 //! ```
 
 pub use estimators::spec::CmsOptions;

@@ -16,14 +16,8 @@
 //! with weight 1 at the camera hit and after a delta (conductor) vertex, where no gather runs.
 //!
 //! # Parameters (`estimator.kind = "ocv"`)
-//! | name | type | default | meaning |
-//! |---|---|---|---|
-//! | `spe` | u32 | 16 | samples per estimate (per vertex gather), ≥ 1 |
-//! | `lambda` | f64 | 1.0 | ridge penalty λ [Fan eq. 11] |
-//! | `bsdf_share` | f64 | 0.5 | mixture weight α of the BSDF component (the rest is split equally among the light components), in [0, 1] |
-//! | `penalize_intercept` | bool | false | literal [Fan eq. 11]: also penalise β0 (shrinks each estimate by ≈ λ/(N+λ); see `estimators::ocv`) |
-//! | `optimize` | bool | true | false: plain deterministic-mixture estimate [Fan eq. 6] (Fan's MIS baseline) |
-//! | `max_light_components` | u32 | 16 | with more lights than this, all lights form **one** component sampled by the light selection (Fan §7's advice for many lights) |
+//! Options (defaults, ranges, meaning): the table of [`OcvOptions`] (defined once, in
+//! `estimators::spec`, for the CLI, the farm's API and the renderer).
 //!
 //! ```json
 //! { "estimator": { "kind": "ocv", "spe": 64, "lambda": 1.0, "bsdf_share": 0.5 }, "max_depth": 2 }

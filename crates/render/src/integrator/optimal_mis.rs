@@ -6,13 +6,8 @@
 //! is controlled; deeper vertices use the plain balance heuristic. With one integral per
 //! cell the relative weighting cancels, so there is no surrogate phase.
 //!
-//! | parameter | type | default | meaning |
-//! |---|---|---|---|
-//! | `training_spp` | u32 | 16 | samples per pixel of the training phase (kept in the image) |
-//! | `color` | `"rgb"` \| `"mono"` | `"rgb"` | coefficients per channel or shared |
-//! | `max_light_components` | u32 | 1024 | more emitters than this are clustered by spatial proximity |
-//! | `ridge` | f64 | `1e-6` | relative Tikhonov regularisation |
-//! | `min_samples` | u64 | 16 | pixels with fewer training samples fall back to the plain estimator |
+//! Options (defaults, ranges, meaning): the table of [`OptimalMisOptions`] (defined once, in
+//! `estimators::spec`, for the CLI, the farm's API and the renderer).
 //!
 //! ```json
 //! { "kind": "optimal_mis", "training_spp": 16 }

@@ -8,11 +8,8 @@
 //! to the NEE technique, so it is never worse than the baseline in expectation [Hua §7.2].
 //! The BSDF sample keeps its plain balance-heuristic value.
 //!
-//! | parameter | type | default | meaning |
-//! |---|---|---|---|
-//! | `training_spp` | u32 | 16 | samples per pixel of the training phase (kept in the image) |
-//! | `grid_resolution` | `[nx, ny, nz]` \| null | null | cells per axis; null = adaptive (≈ 16×16 pixels per cell) |
-//! | `max_light_components` | u32 | 1024 | more emitters than this are clustered by spatial proximity |
+//! Options (defaults, ranges, meaning): the table of [`PerLightCvOptions`] (defined once, in
+//! `estimators::spec`, for the CLI, the farm's API and the renderer).
 //!
 //! ```json
 //! { "kind": "per_light_cv", "training_spp": 16 }
