@@ -167,6 +167,7 @@ impl OcvOptions {
 /// | `ridge` | f64 | `1` | relative Tikhonov regularisation of each cell system: `A + ridge·diag(A)` shrinks `α` toward the base estimator (`path` with the default `base`); 1 halves an uncorrelated coefficient. Chosen by equal-spp measurements (`docs/bench/README.md`): the unshrunk fit loses to `path` on direct lighting |
 /// | `min_samples` | u64 | 16 | cells with fewer training samples fall back to the plain estimator |
 /// | `base` | `"mis"` \| `"balance"` | `"mis"` | base estimator (`α ≡ 0`): the job's MIS heuristic (= `path`) or balance [`CvBase`] |
+/// | `min_depth` | u32 | `1` | the CV is trained and applied only at path vertices of at least this depth (0 = the camera hit); shallower vertices use the base estimator. With 1, depth-2 (direct-lighting) jobs are exactly `path`. Chosen by equal-spp measurements (`docs/bench/README.md`): the CV at the camera hit costs more than it gains against the stratified (Sobol) pixel samples of the base estimator |
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct CmsOptions {
@@ -188,6 +189,8 @@ pub struct CmsOptions {
     pub min_samples: u64,
     /// Base estimator of the controlled direct lighting.
     pub base: CvBase,
+    /// Shallowest vertex depth the CV is trained and applied at.
+    pub min_depth: u32,
 }
 
 impl Default for CmsOptions {
@@ -202,6 +205,7 @@ impl Default for CmsOptions {
             ridge: 1.0,
             min_samples: 16,
             base: CvBase::Mis,
+            min_depth: 1,
         }
     }
 }
@@ -310,6 +314,15 @@ impl PhasedEstimator {
     /// Whether training samples are weighted by a surrogate image [Hua eq. 25].
     pub fn relative(&self) -> bool {
         matches!(self, Self::Cms(o) if o.relative)
+    }
+
+    /// Shallowest vertex depth the CV is trained and applied at (`cms`'s `min_depth`; 0 for
+    /// the others).
+    pub fn min_depth(&self) -> u32 {
+        match self {
+            Self::Cms(o) => o.min_depth,
+            _ => 0,
+        }
     }
 
     /// Checks the ranges; returns the offending field and why.

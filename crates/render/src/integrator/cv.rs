@@ -80,7 +80,9 @@ use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::{Estimator, RenderError, RenderScene, RenderSettings, VertexObserver, VertexRecord};
+use super::{
+    Estimator, NoObserver, RenderError, RenderScene, RenderSettings, VertexObserver, VertexRecord,
+};
 use crate::film::{Film, FilmLayer};
 use crate::light::Lights;
 use crate::sampler::Sampler;
@@ -383,76 +385,123 @@ struct CvContext<'a> {
     color: ColorMode,
     /// MIS heuristic of the base estimator (`α ≡ 0`).
     base: super::MisHeuristic,
+    /// Vertices shallower than this are not controlled (`cms`'s `min_depth`).
+    min_depth: u32,
+}
+
+impl CvContext<'_> {
+    /// See [`CvJob::controls_any_vertex`].
+    fn controls_any_vertex(&self) -> bool {
+        // Vertex `d` scatters when `d + 1 < max_depth`.
+        u64::from(self.min_depth) + 1 < u64::from(self.st.max_depth_u32())
+    }
 }
 
 /// Solved coefficients indexed by cell (grid cell or pixel); built by
 /// [`CvJob::coefficient_table`].
+///
+/// The render phase reads one row per controlled vertex, at a random cell and light, so the
+/// table is laid out for cache misses rather than for generality: per slot one contiguous
+/// `f32` row `[Σα (hi), Σα (lo), α_bsdf, α_partition 0, …, α_partition P−1]` (three
+/// channels each). The coefficients are rounded to `f32` *before* `Σα` is summed (in `f64`,
+/// stored as an `f32` hi/lo pair, exact to ~2⁻⁴⁸ relative), so the added `Σα` is the sum of
+/// exactly the `α` whose terms are subtracted and the estimator stays unbiased [Hua eq. 17];
+/// the rounding only moves `α` by 2⁻²⁴ relative, i.e. changes the variance negligibly.
 #[derive(Debug)]
 pub struct CoefficientTable {
     slot: Vec<u32>,
+    /// Per slot: the coefficients (only read when `stride == 0`).
     coeffs: Vec<CellCoefficients>,
-    /// Per slot `stride` rows `[α_bsdf, α_partition 0, …, α_partition P−1]` (per channel)
-    /// when `P + 1 <= DENSE_ROW_MAX` (`stride = P + 1`), else empty (`stride = 0`) and the
-    /// terms come from [`CellCoefficients::cv_term`]'s binary search.
-    dense: Vec<[f64; 3]>,
+    /// Per slot `stride` floats (see the type docs) when the rows fit
+    /// ([`DENSE_ROW_MAX`], [`DENSE_TOTAL_MAX`]), else empty (`stride = 0`) and the terms come
+    /// from [`CellCoefficients::cv_term`]'s binary search in `f64`.
+    rows: Vec<f32>,
     stride: usize,
 }
 
+/// Floats of a row before the partition coefficients: `Σα` hi and lo, `α_bsdf`.
+const ROW_HEAD: usize = 9;
 /// Largest dense coefficient row (components per cell) of a [`CoefficientTable`].
 const DENSE_ROW_MAX: usize = 257;
-/// Largest number of dense entries (`[f64; 3]`, 24 bytes each) of a [`CoefficientTable`]:
-/// 48 MiB; above it (e.g. `optimal_mis` on a large image with many lights) terms come from
-/// the sparse coefficients.
-const DENSE_TOTAL_MAX: usize = 1 << 21;
+/// Largest number of row floats of a [`CoefficientTable`] (48 MiB); above it (e.g.
+/// `optimal_mis` on a large image with many lights) terms come from the sparse coefficients.
+const DENSE_TOTAL_MAX: usize = 12 << 20;
 
 impl CoefficientTable {
+    /// Slot of `cell`, `None` for a cell without coefficients (`α ≡ 0`).
     #[inline]
-    fn get(&self, cell: u32) -> Option<(usize, &CellCoefficients)> {
+    fn get(&self, cell: u32) -> Option<usize> {
         let s = *self.slot.get(cell as usize)? as usize;
-        self.coeffs.get(s).map(|c| (s, c))
+        (s < self.coeffs.len()).then_some(s)
     }
 
     fn push(&mut self, co: &CellCoefficients) {
         if self.stride > 0 {
-            self.dense.push(co.alpha_overlapping(0));
-            let start = self.dense.len();
-            self.dense.resize(start + self.stride - 1, [0.0; 3]);
-            for (id, a) in co.partitions() {
-                if let Some(d) = self.dense.get_mut(start + id as usize) {
-                    *d = a;
+            let start = self.rows.len();
+            self.rows.resize(start + self.stride, 0.0);
+            let row = &mut self.rows[start..];
+            let mut sum = [0.0f64; 3];
+            let mut put = |dst: &mut [f32], a: [f64; 3]| {
+                for c in 0..3 {
+                    dst[c] = a[c] as f32;
+                    sum[c] += f64::from(dst[c]);
                 }
+            };
+            put(&mut row[6..9], co.alpha_overlapping(0));
+            for (id, a) in co.partitions() {
+                let at = ROW_HEAD + 3 * id as usize;
+                if let Some(d) = row.get_mut(at..at + 3) {
+                    put(d, a);
+                }
+            }
+            for c in 0..3 {
+                let hi = sum[c] as f32;
+                row[c] = hi;
+                row[3 + c] = (sum[c] - f64::from(hi)) as f32;
             }
         }
         self.coeffs.push(co.clone());
     }
 
-    /// `Σ_k α_k λ_k(x)/p(x)` of one sample (the BSDF component only with `bsdf`): the same
-    /// arithmetic as [`CellCoefficients::cv_term`], through a dense row when there is one.
+    /// `Σ_k α_k` of slot `slot` (added once per vertex).
     #[inline]
-    fn term(&self, slot: usize, co: &CellCoefficients, s: &TechSample, bsdf: bool) -> [f64; 3] {
+    fn alpha_sum(&self, slot: usize) -> [f64; 3] {
+        if self.stride == 0 {
+            return self.coeffs[slot].alpha_sum();
+        }
+        let h = &self.rows[slot * self.stride..slot * self.stride + 6];
+        [0, 1, 2].map(|c| f64::from(h[c]) + f64::from(h[3 + c]))
+    }
+
+    /// `Σ_k α_k λ_k(x)/p(x)` of one sample (the BSDF component only with `bsdf`): the same
+    /// arithmetic as [`CellCoefficients::cv_term`], through the `f32` row when there is one.
+    #[inline]
+    fn term(&self, slot: usize, s: &TechSample, bsdf: bool) -> [f64; 3] {
         if self.stride == 0 {
             let lb = [s.lambda_bsdf];
-            return co.cv_term(&s.cv(if bsdf { &lb } else { &[] }));
+            return self.coeffs[slot].cv_term(&s.cv(if bsdf { &lb } else { &[] }));
         }
         let mut t = [0.0f64; 3];
         if s.pdf <= 0.0 || !s.pdf.is_finite() {
             return t;
         }
         let inv_p = 1.0 / s.pdf;
-        let row = &self.dense[slot * self.stride..(slot + 1) * self.stride];
+        let row = &self.rows[slot * self.stride..(slot + 1) * self.stride];
         if bsdf && s.lambda_bsdf != 0.0 {
             let r = s.lambda_bsdf * inv_p;
-            for (o, a) in t.iter_mut().zip(row[0]) {
-                *o += a * r;
+            for (o, &a) in t.iter_mut().zip(&row[6..9]) {
+                *o += f64::from(a) * r;
             }
         }
         if let Some((c, l)) = s.partition
             && l != 0.0
-            && let Some(a) = row.get(1 + c as usize)
         {
-            let r = l * inv_p;
-            for (o, a) in t.iter_mut().zip(a) {
-                *o += a * r;
+            let at = ROW_HEAD + 3 * c as usize;
+            if let Some(a) = row.get(at..at + 3) {
+                let r = l * inv_p;
+                for (o, &a) in t.iter_mut().zip(a) {
+                    *o += f64::from(a) * r;
+                }
             }
         }
         t
@@ -593,10 +642,10 @@ impl Policy<'_, '_> {
                 let p = pl + pb;
                 // Base value: the job's MIS weight against the BSDF density of the
                 // direction, exactly as `path` weighs it (zero when occluded anyway).
-                let w = f64::from(self.ctx.base.weight(lt.pdf_light, lt.pdf_bsdf));
+                let w = f64::from(self.ctx.base.weight(lt.pdf_light, lt.pdf_bsdf)) / pl;
                 let f = v3(lt.value);
                 Some(TechSample {
-                    value: f.map(|x| x * w / pl),
+                    value: f.map(|x| x * w),
                     pdf: if nee_only { pl } else { p },
                     partition: Some((c, pl * inv_s)),
                     lambda_bsdf: pb,
@@ -621,7 +670,12 @@ impl Policy<'_, '_> {
             }),
             Some(b) if !b.traced => None,
             Some(b) => {
-                let scale = 1.0 / f64::from(b.rr_q);
+                // No roulette before `rr_depth`: skip the division.
+                let scale = if b.rr_q == 1.0 {
+                    1.0
+                } else {
+                    1.0 / f64::from(b.rr_q)
+                };
                 if b.delta {
                     Some(TechSample {
                         value: v3(b.weight * b.emitted),
@@ -682,10 +736,16 @@ impl VertexObserver for Policy<'_, '_> {
                 *p += s.scale * v;
             }
         }
-        let cell = self.cell_of(r);
+        let cell = if r.depth == 0 || r.depth >= self.ctx.min_depth {
+            self.cell_of(r)
+        } else {
+            None
+        };
         if r.depth == 0 {
             self.first_cell = cell;
         }
+        // Shallower than `min_depth`: not controlled, the base estimate, no training sample.
+        let cell = cell.filter(|_| r.depth >= self.ctx.min_depth);
         let kind = self.ctx.kind;
         let mut out = plain;
         match (&mut self.phase, cell) {
@@ -715,8 +775,8 @@ impl VertexObserver for Policy<'_, '_> {
                 }
             }
             (Phase::Apply(table), Some(key)) => {
-                if let Some((slot, co)) = table.get(key) {
-                    out = co.alpha_sum();
+                if let Some(slot) = table.get(key) {
+                    out = table.alpha_sum(slot);
                     // `per_light_cv` controls the NEE sample only [Hua §7.2].
                     let per_light = kind == Kind::PerLight;
                     for (i, s) in samples.iter().enumerate() {
@@ -724,7 +784,7 @@ impl VertexObserver for Policy<'_, '_> {
                         let t = if per_light && i == 1 {
                             [0.0; 3]
                         } else {
-                            table.term(slot, co, s, !per_light)
+                            table.term(slot, s, !per_light)
                         };
                         for c in 0..3 {
                             out[c] += s.scale * (s.value[c] - t[c]);
@@ -872,6 +932,7 @@ impl<'a> CvJob<'a> {
                 grid,
                 layout,
                 color: color.mode(),
+                min_depth: estimator.min_depth(),
                 base: match estimator.base() {
                     CvBase::Mis => settings.mis,
                     CvBase::Balance => super::MisHeuristic::Balance,
@@ -896,6 +957,15 @@ impl<'a> CvJob<'a> {
     /// Whether the training phase needs a surrogate image [Hua eq. 25].
     pub fn needs_surrogate(&self) -> bool {
         self.estimator.relative() && !self.phases.surrogate.is_empty()
+    }
+
+    /// Whether any vertex of a path can be controlled: false when `max_depth` leaves no
+    /// scattering vertex at or below `min_depth` (e.g. `cms` at depth 2 with the default
+    /// `min_depth` 1). Then training accumulates nothing, every cell falls back and the job is
+    /// its base estimator; the surrogate image (which only weighs training samples) is not
+    /// needed.
+    pub fn controls_any_vertex(&self) -> bool {
+        self.ctx.controls_any_vertex()
     }
 
     /// Solve policy of the cell systems.
@@ -987,12 +1057,14 @@ impl<'a> CvJob<'a> {
             field: "coefficients",
             reason,
         };
-        let row = self.ctx.layout.partitions as usize + 1;
+        let comps = self.ctx.layout.partitions as usize + 1;
+        let row = ROW_HEAD + 3 * (comps - 1);
         let mut table = CoefficientTable {
             slot: vec![u32::MAX; self.table_len],
             coeffs: Vec::with_capacity(solved.len()),
-            dense: Vec::new(),
-            stride: if row <= DENSE_ROW_MAX && solved.len().saturating_mul(row) <= DENSE_TOTAL_MAX {
+            rows: Vec::new(),
+            stride: if comps <= DENSE_ROW_MAX && solved.len().saturating_mul(row) <= DENSE_TOTAL_MAX
+            {
                 row
             } else {
                 0
@@ -1090,6 +1162,18 @@ fn run_tile(
     let mut cell_id = vec![-1.0f32; if kind == PhaseKind::Apply { n } else { 0 }];
     let mut rays = 0u64;
     let mut i = 0usize;
+    // Where the vertex policy would change nothing — no sample is controlled or trained on,
+    // and the base estimator is the job's `path` — trace with `path` itself: the same
+    // estimator without the policy's per-vertex work and the extra rays a CV needs [Hua §8].
+    // (The `cell` layer then stays −1.) Farm workers run the same code: same bits.
+    let plain_path = ctx.base == st.mis
+        && match kind {
+            PhaseKind::Plain => true,
+            PhaseKind::Train => !ctx.controls_any_vertex(),
+            PhaseKind::Apply => {
+                !ctx.controls_any_vertex() || table.is_none_or(|t| t.coeffs.is_empty())
+            }
+        };
     for y in tile.y0..tile.y0 + tile.height {
         for x in tile.x0..tile.x0 + tile.width {
             let pixel = y * rs.width + x;
@@ -1099,6 +1183,18 @@ fn run_tile(
                 let mut sampler = Sampler::new(st.seed, pixel, s);
                 let u = sampler.next_2d();
                 let ray = rs.camera.ray(Vec2::new(x as f32 + u.x, y as f32 + u.y));
+                if plain_path {
+                    let sample = super::path::trace(rs, st, ray, &mut sampler, &mut NoObserver);
+                    rays += u64::from(sample.rays);
+                    let px = film.pixel_mut(x, y);
+                    if sample.radiance.is_finite() {
+                        px.add(sample.radiance, sample.albedo, sample.normal);
+                    } else {
+                        px.add(Vec3::ZERO, sample.albedo, sample.normal);
+                        rejected += 1;
+                    }
+                    continue;
+                }
                 let phase = match (kind, table) {
                     (PhaseKind::Train, _) => Phase::Train(&mut cells),
                     (PhaseKind::Apply, Some(t)) => Phase::Apply(t),
@@ -1225,6 +1321,8 @@ pub fn render_estimator_image(
     let t0 = Instant::now();
     let mut surrogate: Option<Vec<f64>> = None;
     if job.needs_surrogate() {
+        // (Without a controllable vertex the surrogate would weigh no training sample: the
+        // samples are rendered, the denoise is skipped — same bits.)
         let outs = par_tiles(&pool, &tiles, &ph.surrogate, &tick, |t| {
             job.surrogate_tile(t, ph.surrogate.clone())
         });
@@ -1235,11 +1333,13 @@ pub fn render_estimator_image(
         }
         film.merge(&sfilm);
         let td = Instant::now();
-        surrogate = Some(surrogate_image(
-            &film_moments(&sfilm),
-            rs.width as usize,
-            rs.height as usize,
-        ));
+        if job.controls_any_vertex() {
+            surrogate = Some(surrogate_image(
+                &film_moments(&sfilm),
+                rs.width as usize,
+                rs.height as usize,
+            ));
+        }
         overhead += td.elapsed().as_secs_f64();
     }
     timings.surrogate = t0.elapsed().as_secs_f64();
@@ -1416,14 +1516,15 @@ mod tests {
         assert_eq!(e.cell(Vec3::ZERO), 0);
     }
 
-    /// The dense coefficient rows give the same bits as the sparse binary search.
+    /// The `f32` coefficient rows give the same bits as the sparse `f64` binary search when
+    /// the coefficients are `f32` values, and `Σα` is exactly the sum of the stored `α`.
     #[test]
     fn dense_and_sparse_coefficient_terms_agree() {
         let layout = ComponentLayout::new(5, 1).unwrap();
         let co = CellCoefficients::from_values(
             layout,
             ColorMode::Rgb,
-            &[(1, [0.5, -0.25, 2.0]), (4, [1e-3, 3.0, -7.5])],
+            &[(1, [0.5, -0.25, 2.0]), (4, [0.0009765625, 3.0, -7.5])],
             &[[0.125, 0.75, -1.5]],
         )
         .unwrap();
@@ -1431,13 +1532,16 @@ mod tests {
             let mut t = CoefficientTable {
                 slot: vec![0],
                 coeffs: Vec::new(),
-                dense: Vec::new(),
+                rows: Vec::new(),
                 stride,
             };
             t.push(&co);
             t
         };
-        let (dense, sparse) = (mk(6), mk(0));
+        let (dense, sparse) = (mk(ROW_HEAD + 3 * 5), mk(0));
+        assert_eq!(dense.get(0), Some(0));
+        assert_eq!(dense.alpha_sum(0), co.alpha_sum());
+        assert_eq!(sparse.alpha_sum(0), co.alpha_sum());
         for (i, part) in [
             None,
             Some((1, 0.3)),
@@ -1456,9 +1560,9 @@ mod tests {
                 scale: 1.0,
             };
             for bsdf in [true, false] {
-                let a = dense.term(0, &co, &s, bsdf);
+                let a = dense.term(0, &s, bsdf);
                 let b = if bsdf {
-                    sparse.term(0, &co, &s, bsdf)
+                    sparse.term(0, &s, bsdf)
                 } else {
                     // The sparse path without the BSDF component needs a K = 0 layout;
                     // compare against the explicit partition term instead.
@@ -1474,6 +1578,44 @@ mod tests {
                 assert_eq!(a.map(f64::to_bits), b.map(f64::to_bits), "{part:?} {bsdf}");
             }
         }
+        // Coefficients that are not `f32` values: `Σα` is the sum of the rounded `α`.
+        let odd = CellCoefficients::from_values(
+            layout,
+            ColorMode::Rgb,
+            &[(0, [0.1, 1e-9, 3.3]), (3, [1e7 + 0.3, -0.7, 0.2])],
+            &[[1.0 / 3.0, -2.0 / 3.0, 0.9]],
+        )
+        .unwrap();
+        let mut t = CoefficientTable {
+            slot: vec![0],
+            coeffs: Vec::new(),
+            rows: Vec::new(),
+            stride: ROW_HEAD + 3 * 5,
+        };
+        t.push(&odd);
+        let r32 = |a: [f64; 3]| a.map(|v| f64::from(v as f32));
+        let mut want = [0.0f64; 3];
+        for a in [
+            r32(odd.alpha_overlapping(0)),
+            r32(odd.alpha_partition(0)),
+            r32(odd.alpha_partition(3)),
+        ] {
+            for c in 0..3 {
+                want[c] += a[c];
+            }
+        }
+        let got = t.alpha_sum(0);
+        for c in 0..3 {
+            assert!(
+                (got[c] - want[c]).abs() <= 1e-14 * want[c].abs(),
+                "{got:?} {want:?}"
+            );
+        }
+        assert_ne!(
+            got,
+            odd.alpha_sum(),
+            "the f64 sum differs from the rounded one"
+        );
     }
 
     #[test]
