@@ -152,11 +152,12 @@ pub fn trace<O: VertexObserver>(
         let wo = frame.to_local(-ray.d);
 
         sampler.set_dimension(vertex_dimension(depth));
-        let u_select = sampler.next_1d();
-        let u_light = sampler.next_2d();
-        let u_lobe = sampler.next_1d();
-        let u_bsdf = sampler.next_2d();
-        let u_rr = sampler.next_1d();
+        let u = sampler.next_8d();
+        let u_select = u[0];
+        let u_light = Vec2::new(u[1], u[2]);
+        let u_lobe = u[3];
+        let u_bsdf = Vec2::new(u[4], u[5]);
+        let u_rr = u[6];
 
         // The BSDF sample does not depend on NEE: taking it first lets its arithmetic overlap
         // the light sample's.
