@@ -432,7 +432,10 @@ impl MaterialTable {
                 reflectance: Vec3::splat(0.5),
             });
         };
+        let two_sided = *two_sided;
         let tex = |c: &scene::Color| crate::texture::eval_color(c, &self.textures, uv);
+        // Each arm builds its `Bsdf` in place: with one shared tail, the compiler copied the
+        // ~260-byte rough-plastic payload (uninitialised for the other kinds) on every call.
         let kind = match entry {
             Entry::Diffuse { reflectance } => BsdfKind::Diffuse {
                 reflectance: tex(reflectance),
@@ -463,15 +466,33 @@ impl MaterialTable {
                 params,
                 diffuse_reflectance,
                 specular_reflectance,
-            } => BsdfKind::RoughPlastic {
-                params: **params,
-                diffuse_reflectance: tex(diffuse_reflectance),
-                specular_reflectance: tex(specular_reflectance),
-            },
+            } => {
+                return rough_plastic_bsdf(
+                    params,
+                    tex(diffuse_reflectance),
+                    tex(specular_reflectance),
+                    two_sided,
+                );
+            }
         };
-        Bsdf {
-            kind,
-            two_sided: *two_sided,
-        }
+        Bsdf { kind, two_sided }
+    }
+}
+
+/// The rough-plastic arm of [`MaterialTable::bsdf`], out of line (see there).
+#[inline(never)]
+fn rough_plastic_bsdf(
+    params: &RoughPlasticParams,
+    diffuse_reflectance: Vec3,
+    specular_reflectance: Vec3,
+    two_sided: bool,
+) -> Bsdf {
+    Bsdf {
+        kind: BsdfKind::RoughPlastic {
+            params: *params,
+            diffuse_reflectance,
+            specular_reflectance,
+        },
+        two_sided,
     }
 }
