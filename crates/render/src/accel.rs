@@ -15,7 +15,8 @@
 //!   million through a closed mesh in `benches/bvh.rs`).
 //! - Surface attributes follow Mitsuba 3: `ng` is the face normal from the winding
 //!   (`normalize((p1 − p0) × (p2 − p0))`) — or the sphere's outward normal, inward with
-//!   `flip_normals` — and `ns` the interpolated vertex normal (`ng` without vertex normals).
+//!   `flip_normals` — and `ns` the interpolated vertex normal (`ng` without vertex normals, or
+//!   when every vertex normal of the mesh equals its face normal up to rounding).
 //!   Like Mitsuba, `ns` is **not** flipped towards `ng` when they disagree; the shading
 //!   frame is built on `ns` and one-sided BSDFs see the back side as black.
 //! - UVs: interpolated mesh UVs, or the barycentrics `(b1, b2)` when a mesh has none
@@ -298,7 +299,7 @@ impl Accel {
             .iter()
             .enumerate()
             .map(|(i, m)| MeshGeom {
-                has_normals: m.normals.is_some(),
+                has_normals: m.normals.is_some() && !normals_are_flat(m),
                 has_uvs: m.uvs.is_some(),
                 material: m.material,
                 light: mesh_lights.get(i).copied().flatten(),
@@ -506,6 +507,31 @@ impl Accel {
     }
 }
 
+/// Whether every vertex normal of every triangle of `mesh` equals the triangle's face normal
+/// to within [`FLAT_NORMAL_TOLERANCE`] per component (planar meshes: walls, quads, boxes with
+/// per-face vertices). Then `finish_hit` shades with the face normal and skips interpolating
+/// and renormalising: the interpolated normal differs from it only by rounding.
+fn normals_are_flat(mesh: &scene::Mesh) -> bool {
+    let Some(normals) = &mesh.normals else {
+        return true;
+    };
+    mesh.indices.iter().all(|idx| {
+        let [Some(&p0), Some(&p1), Some(&p2)] = idx.map(|i| mesh.positions.get(i as usize)) else {
+            return false;
+        };
+        let ng = (p1 - p0).cross(p2 - p0).normalize();
+        idx.iter().all(|&i| {
+            normals
+                .get(i as usize)
+                .is_some_and(|n| (*n - ng).abs().max_element() <= FLAT_NORMAL_TOLERANCE)
+        })
+    })
+}
+
+/// Largest per-component difference between a vertex normal and the face normal for which a
+/// triangle counts as flat (a few ulps of a unit vector).
+const FLAT_NORMAL_TOLERANCE: f32 = 4.0 * f32::EPSILON;
+
 /// The obvhs ray for `o + t·d`, `t ∈ (0, t_max)`.
 ///
 /// Negative zeros in `d` are turned into positive ones: obvhs picks the octant from
@@ -650,6 +676,42 @@ fn intersect_sphere(c: Vec3, radius: f32, o: Vec3, d: Vec3, t_max: f32) -> Optio
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn flat_normal_detection_accepts_only_face_normals() {
+        let mesh = |normals: Option<Vec<Vec3>>| scene::Mesh {
+            positions: vec![
+                Vec3::new(-1.0, -1.0, 0.0),
+                Vec3::new(1.0, -1.0, 0.0),
+                Vec3::new(1.0, 1.0, 0.0),
+                Vec3::new(-1.0, 1.0, 0.0),
+            ],
+            normals,
+            uvs: None,
+            indices: vec![[0, 1, 2], [0, 2, 3]],
+            material: 0,
+            emitter: None,
+        };
+        assert!(normals_are_flat(&mesh(None)));
+        assert!(normals_are_flat(&mesh(Some(vec![Vec3::Z; 4]))));
+        // A vertex normal off by one ulp-scale rounding still counts; a real tilt or the back
+        // side does not.
+        let nearly = Vec3::new(f32::EPSILON, 0.0, 1.0);
+        assert!(normals_are_flat(&mesh(Some(vec![
+            Vec3::Z,
+            nearly,
+            Vec3::Z,
+            Vec3::Z
+        ]))));
+        let tilted = Vec3::new(0.1, 0.0, 1.0).normalize();
+        assert!(!normals_are_flat(&mesh(Some(vec![
+            Vec3::Z,
+            Vec3::Z,
+            tilted,
+            Vec3::Z
+        ]))));
+        assert!(!normals_are_flat(&mesh(Some(vec![-Vec3::Z; 4]))));
+    }
 
     #[test]
     fn sphere_quadratic_finds_near_and_far_roots() {

@@ -268,12 +268,15 @@ impl WideBvh {
         let boxes = BoxRay::new(ray);
         let mut best_t = t_max;
         let mut best: Option<WideHit> = None;
-        let mut stack = [(0u32, 0f32); STACK];
-        stack[0] = (self.root, 0.0);
+        // Uninitialised: only entries below `sp` are read (zeroing 512 bytes per ray cost ~3 %
+        // of all instructions).
+        let mut stack = [std::mem::MaybeUninit::<(u32, f32)>::uninit(); STACK];
+        stack[0].write((self.root, 0.0));
         let mut sp = 1;
         while sp > 0 {
             sp -= 1;
-            let (r, t_near) = stack[sp];
+            // SAFETY: entries below `sp` were written (pushes write before incrementing `sp`).
+            let (r, t_near) = unsafe { stack[sp].assume_init() };
             if t_near > best_t {
                 continue;
             }
@@ -292,11 +295,12 @@ impl WideBvh {
                         m &= m - 1;
                         let entry = (node.child[lane], t_in[lane]);
                         let mut j = sp;
-                        while j > base && stack[j - 1].1 < entry.1 {
+                        // SAFETY: `base ≤ j − 1 < sp`: a written entry.
+                        while j > base && unsafe { stack[j - 1].assume_init().1 } < entry.1 {
                             stack[j] = stack[j - 1];
                             j -= 1;
                         }
-                        stack[j] = entry;
+                        stack[j].write(entry);
                         sp += 1;
                     }
                 }
@@ -322,12 +326,13 @@ impl WideBvh {
     #[inline]
     pub(super) fn occluded(&self, prims: &[Prim], ray: &RayShear, t_max: f32) -> bool {
         let boxes = BoxRay::new(ray);
-        let mut stack = [0u32; STACK];
-        stack[0] = self.root;
+        let mut stack = [std::mem::MaybeUninit::<u32>::uninit(); STACK];
+        stack[0].write(self.root);
         let mut sp = 1;
         while sp > 0 {
             sp -= 1;
-            let r = stack[sp];
+            // SAFETY: entries below `sp` were written (pushes write before incrementing `sp`).
+            let r = unsafe { stack[sp].assume_init() };
             let index = (r & INDEX_MASK) as usize;
             match r >> TAG_SHIFT {
                 TAG_INNER => {
@@ -337,7 +342,7 @@ impl WideBvh {
                     while m != 0 {
                         let lane = m.trailing_zeros() as usize;
                         m &= m - 1;
-                        stack[sp] = node.child[lane];
+                        stack[sp].write(node.child[lane]);
                         sp += 1;
                     }
                 }
