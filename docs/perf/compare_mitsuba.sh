@@ -11,6 +11,7 @@
 # renderers alike: on a shared machine the minimum is the least disturbed run.
 #
 # Usage (repo root): [REPEATS=n] sh docs/perf/compare_mitsuba.sh [SPP]      (default SPP 64)
+# The CLI is built (and run) in $CARGO_TARGET_DIR when set, else ./target.
 # Writes docs/perf/mitsuba.md and docs/perf/mitsuba.json.
 set -e
 SPP=${1:-64}
@@ -28,7 +29,7 @@ fi
 
 cargo build --release -p cli >&2
 LOAD_START=$(cut -d' ' -f1-3 /proc/loadavg)
-CVFARM=$ROOT/target/release/cvfarm
+CVFARM=${CARGO_TARGET_DIR:-$ROOT/target}/release/cvfarm
 python3 scenes/make_scenes.py --only cornell-box --only many-lights --out "$TMP/native" \
   --mitsuba-xml "$TMP/xml" 2>/dev/null
 
