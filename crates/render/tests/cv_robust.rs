@@ -22,6 +22,8 @@ fn estimators() -> Vec<Estimator> {
             color: render::integrator::cv::CvColor::Mono,
             training_spp: 4,
             grid_resolution: Some([8, 8, 8]),
+            // Also the camera hit (the default `min_depth` 1 leaves it to the base).
+            min_depth: 0,
             ..CmsOptions::default()
         }),
         Estimator::PerLightCv(PerLightCvOptions {
@@ -245,4 +247,45 @@ fn bad_grid_resolution_is_an_error() {
         &|_, _| {},
     );
     assert!(r.is_err());
+}
+
+/// With the default `min_depth` 1 a depth-2 job has no vertex to control: every phase is
+/// traced by `path` itself, so the image is `path`'s up to the order in which the phases'
+/// sums are added; with `min_depth` 0 the same job applies a CV at the camera hit and differs.
+#[test]
+fn cms_at_depth_two_is_path() {
+    let opts = RenderOptions::default();
+    for rel in [
+        "scenes/many-lights/scene.json",
+        "scenes/veach-mis/scene.json",
+    ] {
+        let s = load(rel, 24, 16);
+        let (p, _) = render(&s, Estimator::Path, 24, 5, Some(2), opts);
+        let diff = |min_depth| {
+            let e = Estimator::Cms(CmsOptions {
+                training_spp: 8,
+                min_samples: 4,
+                min_depth,
+                ..CmsOptions::default()
+            });
+            let (cv, report) = render(&s, e, 24, 5, Some(2), opts);
+            let mut worst = 0.0f64;
+            for (a, b) in cv.pixels.iter().zip(&p.pixels) {
+                assert_eq!(a.count, b.count);
+                for c in 0..3 {
+                    let d = (a.sum[c] - b.sum[c]).abs() / (1e-3 + b.sum[c].abs());
+                    worst = worst.max(d);
+                }
+            }
+            (worst, report.cells_solved)
+        };
+        let (d1, solved1) = diff(1);
+        assert_eq!(solved1, 0, "{rel}");
+        assert!(d1 <= 1e-9, "{rel}: min_depth 1 differs from path by {d1}");
+        let (d0, solved0) = diff(0);
+        assert!(
+            solved0 > 0 && d0 > 1e-6,
+            "{rel}: min_depth 0 {d0} ({solved0} cells)"
+        );
+    }
 }

@@ -50,6 +50,22 @@
 //! Cells are grid cells split by the dominant axis and sign of the shading normal
 //! ([`NORMAL_BINS`]), so differently oriented surfaces never share coefficients.
 //!
+//! # Controlled vertices (`min_depth`)
+//! `cms` trains and applies the CV only at vertices of depth ≥ `min_depth` (default 1: not
+//! at the camera hit); shallower vertices keep the base estimate. The regression measures
+//! i.i.d. variance, but `path` samples each pixel with an Owen-scrambled Sobol sequence,
+//! whose error at the camera hit (the dimensions stratified per pixel) falls faster than
+//! `1/N`; the CV term `α·(1 − Σ_s λ/p)` jumps with visibility and light hits and spoils that
+//! stratification, so there the fitted CV lost to `path` at equal samples (many-lights d2
+//! 0.74×, veach-mis d5 0.98× with `min_depth` 0; 1.00× / 1.005× with 1; numbers in
+//! `docs/bench/README.md`). Deeper vertices use high, poorly stratified sampler dimensions,
+//! where the variance the fit sees is the error the image gets.
+//!
+//! Where the policy would change nothing (the surrogate phase; jobs whose `max_depth`
+//! leaves no vertex at `min_depth` or deeper; a render phase without coefficients) and the
+//! base is the job's heuristic, tiles are traced with `path` itself: no policy work per
+//! vertex and none of the extra rays a CV needs.
+//!
 //! # Phases and determinism
 //! surrogate (cms with `relative`) → train → solve → render, sample indices
 //! `[0, s)`, `[s, s+T)`, `[s+T, spp)` of the job's sampler, all kept in the image.
