@@ -296,6 +296,9 @@ fn bad_train_uploads_are_4xx_json_and_the_task_is_redone() {
     assert!(client.download(id, "image.exr") == local_cv_exr(&scene, &est, &status.job));
 }
 
+/// Also covers training tables as stored: apart from the pixel frame (`results.cells`), and,
+/// for the first task, rewritten to the layout of rows stored before that split (the whole
+/// frame in `results.data`, `cells` NULL) — the barrier reads both.
 #[test]
 fn coordinator_restart_between_train_and_render_finishes_identically() {
     let mut farm = Farm::start(Backend::Sqlite);
@@ -310,6 +313,7 @@ fn coordinator_restart_between_train_and_render_finishes_identically() {
     let train_tasks = protocol::job::plan_phases(&first.job, &first.estimator)[0]
         .tasks
         .len();
+    assert!(train_tasks >= 2, "a legacy row and a split one");
     let mut lease = Some(first);
     let mut uploaded = 0;
     while let Some(l) = lease.take() {
@@ -319,6 +323,29 @@ fn coordinator_restart_between_train_and_render_finishes_identically() {
             .expect("train tile");
         let up = fake.upload(l.task_id, l.attempt, r.encode());
         assert_eq!(up.status, 200, "{}", String::from_utf8_lossy(&up.body));
+        let pool = farm.coord.state.store.pool().clone();
+        let (data, cells): (Vec<u8>, Option<Vec<u8>>) = farm
+            .coord
+            .block_on(
+                sqlx::query_as("SELECT data, cells FROM results WHERE task_id = ? AND attempt = ?")
+                    .bind(l.task_id)
+                    .bind(i64::from(l.attempt))
+                    .fetch_one(&pool),
+            )
+            .expect("stored result");
+        let stored = protocol::frame::decode(&data, usize::MAX >> 1).expect("stored frame");
+        assert!(stored.cells.is_empty() && stored.pixels == r.pixels);
+        assert!(cells.as_deref() == Some(r.cells[0].data.as_slice()));
+        if uploaded == 0 {
+            farm.coord
+                .block_on(
+                    sqlx::query("UPDATE results SET data = ?, cells = NULL WHERE task_id = ?")
+                        .bind(r.encode())
+                        .bind(l.task_id)
+                        .execute(&pool),
+                )
+                .expect("legacy row");
+        }
         uploaded += 1;
         if uploaded < train_tasks {
             lease = Some(fake.lease().expect("lease"));

@@ -3,8 +3,9 @@
 //! - **Barrier** (a CV job's `surrogate` or `train` phase is complete): the phase's results
 //!   are read in canonical task order and turned into the next phase's input with the shared
 //!   functions of [`protocol::cv`] — the surrogate image [Hua §4.2.1] after `surrogate`; the
-//!   merged training tables, solved per cell [Hua eq. 32–33] on a blocking thread with all
-//!   cores, after `train`. The blob is stored content-addressed, then one transaction moves
+//!   training tables (stored apart from the pixels), checked, merged key-range-parallel (the
+//!   bits of the sequential merge) and solved per cell [Hua eq. 32–33] on a blocking thread
+//!   with all cores, after `train`. The blob is stored content-addressed, then one transaction moves
 //!   the job to the next phase and records the address on that phase's row
 //!   (`phases.surrogate` / `phases.coefficients`), where its leases read it.
 //! - **Finish** (the last phase is complete): the image is assembled from **all** phases'
@@ -36,7 +37,7 @@ use protocol::lease::{BarrierStats, JobState, JobStats, PhaseKind, PhaseStats};
 use protocol::{TileResult, frame};
 
 use crate::AppState;
-use crate::store::{JobRow, PhaseRow, StoreError, now_ms};
+use crate::store::{JobRow, PhaseRow, StoreError, StoredTable, now_ms};
 
 /// Why advancing failed.
 #[derive(Debug, thiserror::Error)]
@@ -240,11 +241,15 @@ async fn barrier(state: &AppState, job: &JobRow, phase: &PhaseRow) -> Result<Adv
             job.id, job.estimator
         )));
     };
-    let blobs = store.phase_results(job.id, phase.idx).await?;
-    if blobs.len() as i64 != phase.tasks {
+    // The surrogate reads the pixel frames, training the stored tables.
+    let (blobs, tables) = match phase.kind {
+        PhaseKind::Train => (Vec::new(), store.phase_tables(job.id, phase.idx).await?),
+        _ => (store.phase_results(job.id, phase.idx).await?, Vec::new()),
+    };
+    let results = blobs.len() + tables.len();
+    if results as i64 != phase.tasks {
         return Err(FinishError::Corrupt(format!(
-            "{} results for {} tasks",
-            blobs.len(),
+            "{results} results for {} tasks",
             phase.tasks
         )));
     }
@@ -255,10 +260,10 @@ async fn barrier(state: &AppState, job: &JobRow, phase: &PhaseRow) -> Result<Adv
     // Decoding, denoising, merging and solving are CPU work: off the async threads.
     let (blob, stats) = tokio::task::spawn_blocking(move || {
         let t0 = Instant::now();
-        let tiles = decode_all(&blobs, max_pixels)?;
         let corrupt = |e: cv::CvError| FinishError::Corrupt(e.to_string());
         match kind {
             PhaseKind::Surrogate => {
+                let tiles = decode_all(&blobs, max_pixels)?;
                 let blob = cv::surrogate_blob(&resolved, &tiles).map_err(corrupt)?;
                 let stats = BarrierStats {
                     seconds: t0.elapsed().as_secs_f64(),
@@ -268,12 +273,25 @@ async fn barrier(state: &AppState, job: &JobRow, phase: &PhaseRow) -> Result<Adv
                 Ok((blob, stats))
             }
             PhaseKind::Train => {
-                let tables = tiles
-                    .iter()
-                    .map(|t| cv::check_train_block(&est, &resolved, t))
-                    .collect::<Result<Vec<_>, _>>()
-                    .map_err(corrupt)?;
-                let merged = cv::merge_train(cv::table_kind(&est), tables).map_err(corrupt)?;
+                // Rows stored before tables were kept apart carry them inside the frame.
+                let tables = tables
+                    .into_iter()
+                    .map(|t| match t {
+                        StoredTable::Table(b) => Ok(b),
+                        StoredTable::Frame(f) => {
+                            let tile = frame::decode(&f, max_pixels)
+                                .map_err(|e| FinishError::Corrupt(e.to_string()))?;
+                            match <[_; 1]>::try_from(tile.cells) {
+                                Ok([block]) => Ok(block.data),
+                                Err(c) => Err(corrupt(cv::CvError::BlockCount(c.len()))),
+                            }
+                        }
+                    })
+                    .collect::<Result<Vec<_>, _>>()?;
+                let tables =
+                    cv::check_train_tables(&est, &resolved, &tables, threads).map_err(corrupt)?;
+                let merged =
+                    cv::merge_train(cv::table_kind(&est), tables, threads).map_err(corrupt)?;
                 let solved = merged.solve(&est.solve_policy(), threads);
                 let blob = solved.encode();
                 let (cells, cells_solved, cells_fallback) = cv::solve_summary(&solved);

@@ -248,6 +248,15 @@ pub struct TaskRow {
     pub done_attempt: Option<i64>,
 }
 
+/// A `train` result's training table as stored ([`Store::phase_tables`]).
+#[derive(Clone, Debug)]
+pub enum StoredTable {
+    /// The encoded table (`estimators::table` format).
+    Table(Vec<u8>),
+    /// A whole frame stream whose cell block is the table (rows stored before the split).
+    Frame(Vec<u8>),
+}
+
 /// Outcome of a result upload.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum UploadOutcome {
@@ -903,7 +912,8 @@ impl Store {
             .find_map(|p| p.coefficients))
     }
 
-    /// Accepted results of a phase in canonical task order.
+    /// Accepted results of a phase in canonical task order: frames of header and pixels (a
+    /// `train` result's table is kept apart, see [`Store::phase_tables`]).
     pub async fn phase_results(&self, job_id: i64, phase_idx: i64) -> Result<Vec<Vec<u8>>> {
         let sql = self.sql(
             "SELECT r.data AS data FROM tasks t JOIN results r ON r.task_id = t.id AND r.attempt = t.done_attempt \
@@ -915,6 +925,30 @@ impl Store {
             .fetch_all(&self.pool)
             .await?;
         rows.iter().map(|r| Ok(r.try_get("data")?)).collect()
+    }
+
+    /// The training tables of a phase's accepted results in canonical task order (the train
+    /// barrier's input), each as stored: the table alone, or, for a result stored before
+    /// tables were kept apart, the whole frame that carries it.
+    pub async fn phase_tables(&self, job_id: i64, phase_idx: i64) -> Result<Vec<StoredTable>> {
+        let sql = self.sql(
+            "SELECT r.cells AS cells, CASE WHEN r.cells IS NULL THEN r.data END AS data \
+             FROM tasks t JOIN results r ON r.task_id = t.id AND r.attempt = t.done_attempt \
+             WHERE t.job_id = ? AND t.phase_idx = ? AND t.state = 'done' ORDER BY t.seq",
+        );
+        let rows = sqlx::query(&sql)
+            .bind(job_id)
+            .bind(phase_idx)
+            .fetch_all(&self.pool)
+            .await?;
+        rows.iter()
+            .map(|r| {
+                Ok(match r.try_get::<Option<Vec<u8>>, _>("cells")? {
+                    Some(t) => StoredTable::Table(t),
+                    None => StoredTable::Frame(r.try_get("data")?),
+                })
+            })
+            .collect()
     }
 
     /// Stores an output of a job (no-op when present: outputs are deterministic).
@@ -1135,13 +1169,16 @@ impl Store {
     }
 
     /// Stores the result of (task, attempt) uploaded by `worker_id`, atomically with the
-    /// task's transition to `done`. Idempotent for an accepted (task, attempt).
+    /// task's transition to `done`: `data` is the validated frame without cell blocks, `cells`
+    /// the encoded training table of a `train` result (stored apart, so that assembling the
+    /// image never reads it). Idempotent for an accepted (task, attempt).
     pub async fn store_result(
         &self,
         task_id: i64,
         attempt: i64,
         worker_id: i64,
         data: &[u8],
+        cells: Option<&[u8]>,
     ) -> Result<UploadOutcome> {
         let mut tx = self.pool.begin().await?;
         let sql = self.sql("SELECT attempt FROM results WHERE task_id = ? AND attempt = ?");
@@ -1171,12 +1208,14 @@ impl Store {
         if r.rows_affected() != 1 {
             return Ok(UploadOutcome::Stale);
         }
-        let sql = self
-            .sql("INSERT INTO results (task_id, attempt, data, created_ms) VALUES (?, ?, ?, ?)");
+        let sql = self.sql(
+            "INSERT INTO results (task_id, attempt, data, cells, created_ms) VALUES (?, ?, ?, ?, ?)",
+        );
         sqlx::query(&sql)
             .bind(task_id)
             .bind(attempt)
             .bind(data.to_vec())
+            .bind(cells.map(<[u8]>::to_vec))
             .bind(now)
             .execute(&mut *tx)
             .await?;

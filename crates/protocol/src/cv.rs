@@ -18,7 +18,7 @@ use estimators::solve::SolveStatus;
 use estimators::spec::{MAX_GRID_CELLS, PhasedEstimator};
 use estimators::surrogate::{encode_surrogate, surrogate_image};
 use estimators::table::{
-    AccumulatorTable, KIND_CELL_ACCUMULATORS, KIND_MEAN_CONTRIBUTIONS, SolvedTable,
+    AccumulatorTable, KIND_CELL_ACCUMULATORS, KIND_MEAN_CONTRIBUTIONS, MergeRecord, SolvedTable,
 };
 
 use crate::assemble::{ImageAccumulator, OutOfBounds};
@@ -137,9 +137,8 @@ pub fn layout_signature(table: &AccumulatorTable) -> Result<Option<String>, CvEr
     }
 }
 
-/// Validates the cell block of a `train` result: exactly one block, of the job's kind, that
-/// decodes (sizes, finite values: [`AccumulatorTable::decode`]), with keys below
-/// [`cell_key_limit`] and one layout. Returns the decoded table.
+/// Validates the cell block of a `train` result: exactly one block, of the job's kind, whose
+/// table passes [`check_train_table`]. Returns the decoded table.
 pub fn check_train_block(
     est: &PhasedEstimator,
     job: &ResolvedJob,
@@ -155,8 +154,19 @@ pub fn check_train_block(
             expected,
         });
     }
-    let table =
-        AccumulatorTable::decode(&block.data).map_err(|e| CvError::Decode(e.to_string()))?;
+    check_train_table(est, job, &block.data)
+}
+
+/// Validates an encoded training table (a `train` result's cell block, as the coordinator
+/// stores it): it decodes (sizes, finite values: [`AccumulatorTable::decode`]), is of the
+/// job's kind, has keys below [`cell_key_limit`] and one layout. Returns the decoded table.
+pub fn check_train_table(
+    est: &PhasedEstimator,
+    job: &ResolvedJob,
+    bytes: &[u8],
+) -> Result<AccumulatorTable, CvError> {
+    let expected = table_kind(est);
+    let table = AccumulatorTable::decode(bytes).map_err(|e| CvError::Decode(e.to_string()))?;
     if table.kind() != expected {
         return Err(CvError::WrongKind {
             found: table.kind(),
@@ -171,6 +181,158 @@ pub fn check_train_block(
     Ok(table)
 }
 
+/// [`check_train_table`] of every encoded table, on up to `threads` threads; the tables come
+/// back in the order given, the first error (in that order) wins.
+pub fn check_train_tables<B: AsRef<[u8]> + Sync>(
+    est: &PhasedEstimator,
+    job: &ResolvedJob,
+    blobs: &[B],
+    threads: usize,
+) -> Result<Vec<AccumulatorTable>, CvError> {
+    let chunk = blobs.len().div_ceil(threads.max(1)).max(1);
+    let parts: Vec<Result<Vec<AccumulatorTable>, CvError>> = std::thread::scope(|s| {
+        let handles: Vec<_> = blobs
+            .chunks(chunk)
+            .map(|c| {
+                s.spawn(move || {
+                    c.iter()
+                        .map(|b| check_train_table(est, job, b.as_ref()))
+                        .collect()
+                })
+            })
+            .collect();
+        handles
+            .into_iter()
+            .map(|h| h.join().expect("table check thread panicked"))
+            .collect()
+    });
+    let mut out = Vec::with_capacity(blobs.len());
+    for p in parts {
+        out.extend(p?);
+    }
+    Ok(out)
+}
+
+/// Merges training tables **in the order given** (canonical task order) into one table of
+/// `kind`, on up to `threads` threads. Each cell's record is the fold of that cell's records
+/// over the tables in order ([`estimators::table::merge_tables`]), so the key space can be
+/// split among threads without changing a bit: the result is the sequential merge's for any
+/// `threads`. All tables must be of `kind` and share one layout.
+pub fn merge_train(
+    kind: u16,
+    tables: impl IntoIterator<Item = AccumulatorTable>,
+    threads: usize,
+) -> Result<AccumulatorTable, CvError> {
+    let tables: Vec<AccumulatorTable> = tables.into_iter().collect();
+    let mut layout: Option<String> = None;
+    for t in &tables {
+        if t.kind() != kind {
+            return Err(CvError::WrongKind {
+                found: t.kind(),
+                expected: kind,
+            });
+        }
+        if let Some(sig) = layout_signature(t)? {
+            match &layout {
+                Some(l) if *l != sig => {
+                    return Err(CvError::Layout {
+                        found: sig,
+                        expected: l.clone(),
+                    });
+                }
+                Some(_) => {}
+                None => layout = Some(sig),
+            }
+        }
+    }
+    let decode = |e: estimators::cell::CellError| CvError::Decode(e.to_string());
+    let mut moments = Vec::new();
+    let mut means = Vec::new();
+    for t in tables {
+        match t {
+            AccumulatorTable::Moments(m) => moments.push(m),
+            AccumulatorTable::Mean(m) => means.push(m),
+        }
+    }
+    Ok(match AccumulatorTable::empty(kind).map_err(decode)? {
+        AccumulatorTable::Moments(_) => {
+            AccumulatorTable::Moments(merge_maps(&moments, threads).map_err(decode)?)
+        }
+        AccumulatorTable::Mean(_) => {
+            AccumulatorTable::Mean(merge_maps(&means, threads).map_err(decode)?)
+        }
+    })
+}
+
+/// The key-by-key merge of `maps` in order, the key space split into up to `threads` ranges
+/// of about equal record counts (taken from the largest map), one thread per range.
+fn merge_maps<T: MergeRecord + Send + Sync>(
+    maps: &[BTreeMap<u64, T>],
+    threads: usize,
+) -> Result<BTreeMap<u64, T>, estimators::cell::CellError> {
+    let merge_range = |lo: u64, hi: Option<u64>| {
+        let mut into = BTreeMap::new();
+        for m in maps {
+            let part = match hi {
+                Some(hi) => m.range(lo..hi),
+                None => m.range(lo..),
+            };
+            for (key, rec) in part {
+                match into.get_mut(key) {
+                    Some(acc) => MergeRecord::merge_record(acc, rec)?,
+                    None => {
+                        into.insert(*key, rec.clone());
+                    }
+                }
+            }
+        }
+        Ok::<_, estimators::cell::CellError>(into)
+    };
+    let largest = maps.iter().max_by_key(|m| m.len());
+    let threads = threads.max(1);
+    let bounds: Vec<u64> = match largest {
+        Some(m) if threads > 1 && m.len() >= 2 * threads => {
+            let step = m.len() / threads;
+            m.keys()
+                .skip(step)
+                .step_by(step)
+                .take(threads - 1)
+                .copied()
+                .collect()
+        }
+        _ => Vec::new(),
+    };
+    if bounds.is_empty() {
+        return merge_range(0, None);
+    }
+    let mut ranges: Vec<(u64, Option<u64>)> = Vec::with_capacity(bounds.len() + 1);
+    let mut lo = 0;
+    for &b in &bounds {
+        ranges.push((lo, Some(b)));
+        lo = b;
+    }
+    ranges.push((lo, None));
+    let parts: Vec<Result<BTreeMap<u64, T>, _>> = std::thread::scope(|s| {
+        let handles: Vec<_> = ranges
+            .iter()
+            .map(|&(lo, hi)| {
+                let f = &merge_range;
+                s.spawn(move || f(lo, hi))
+            })
+            .collect();
+        handles
+            .into_iter()
+            .map(|h| h.join().expect("merge thread panicked"))
+            .collect()
+    });
+    let mut out = BTreeMap::new();
+    for p in parts {
+        // Ranges are disjoint and ascending: appending keeps the map's order.
+        out.append(&mut p?);
+    }
+    Ok(out)
+}
+
 /// The encoded surrogate image ([`encode_surrogate`]) of a job from its surrogate phase's
 /// results, summed in the order given (canonical task order).
 pub fn surrogate_blob<'a>(
@@ -183,40 +345,6 @@ pub fn surrogate_blob<'a>(
     }
     let img = surrogate_image(acc.pixels(), job.width as usize, job.height as usize);
     Ok(encode_surrogate(&img, job.width, job.height))
-}
-
-/// Merges training tables key by key in the order given (canonical task order), starting
-/// from an empty table of `kind`; tables of another kind or layout are an error.
-pub fn merge_train(
-    kind: u16,
-    tables: impl IntoIterator<Item = AccumulatorTable>,
-) -> Result<AccumulatorTable, CvError> {
-    let mut merged = AccumulatorTable::empty(kind).map_err(|e| CvError::Decode(e.to_string()))?;
-    let mut layout: Option<String> = None;
-    for t in tables {
-        if t.kind() != kind {
-            return Err(CvError::WrongKind {
-                found: t.kind(),
-                expected: kind,
-            });
-        }
-        if let Some(sig) = layout_signature(&t)? {
-            match &layout {
-                Some(l) if *l != sig => {
-                    return Err(CvError::Layout {
-                        found: sig,
-                        expected: l.clone(),
-                    });
-                }
-                Some(_) => {}
-                None => layout = Some(sig),
-            }
-        }
-        merged
-            .merge(&t)
-            .map_err(|e| CvError::Decode(e.to_string()))?;
-    }
-    Ok(merged)
 }
 
 /// Counts of a solved table for `stats.json`: (cells, solved, fallbacks by reason).
@@ -343,17 +471,71 @@ mod tests {
         let m = merge_train(
             KIND_CELL_ACCUMULATORS,
             [table(2, 1), table(2, 1), table(2, 3)],
+            1,
         )
         .unwrap();
         assert_eq!(m.len(), 2);
         assert!(matches!(
-            merge_train(KIND_CELL_ACCUMULATORS, [table(2, 1), table(3, 4)]),
+            merge_train(KIND_CELL_ACCUMULATORS, [table(2, 1), table(3, 4)], 2),
             Err(CvError::Layout { .. })
         ));
         let solved = m.solve(&Default::default(), 2);
         let (cells, ok, fb) = solve_summary(&solved);
         assert_eq!(cells, 2);
         assert_eq!(ok + fb.values().sum::<u64>(), 2);
+    }
+
+    /// A table of tile `t`: keys overlapping the neighbouring tiles', each record with
+    /// tile-dependent values so that merging in another order would change the bits.
+    fn tile_table(t: u64) -> AccumulatorTable {
+        let mut map = BTreeMap::new();
+        for k in (t * 7)..(t * 7 + 23) {
+            let mut a = CellAccumulator::new(ComponentLayout::new(3, 1).unwrap(), ColorMode::Rgb);
+            for i in 0..3u32 {
+                let x = 0.1 + ((k * 31 + t * 17 + u64::from(i)) % 97) as f64 / 13.0;
+                let s = CvSample {
+                    pdf: 0.7 + x,
+                    partition: Some((i % 3, 0.3 + x / 7.0)),
+                    overlapping: &[x / 3.0],
+                };
+                a.add(1.0 / 3.0, [x, x * x, 1.0 / x], &s).unwrap();
+            }
+            map.insert(k, a);
+        }
+        AccumulatorTable::Moments(map)
+    }
+
+    #[test]
+    fn merge_on_threads_gives_the_sequential_bits() {
+        let tables: Vec<_> = (0..9).map(tile_table).collect();
+        let mut sequential = AccumulatorTable::empty(KIND_CELL_ACCUMULATORS).unwrap();
+        for t in &tables {
+            sequential.merge(t).unwrap();
+        }
+        for threads in 1..=5 {
+            let m = merge_train(KIND_CELL_ACCUMULATORS, tables.clone(), threads).unwrap();
+            assert_eq!(m.len(), sequential.len());
+            assert!(m.encode() == sequential.encode(), "{threads} threads");
+        }
+        // The order matters (so the test can fail): reversed input gives other bits.
+        let mut rev = tables.clone();
+        rev.reverse();
+        let r = merge_train(KIND_CELL_ACCUMULATORS, rev, 3).unwrap();
+        assert!(r.encode() != sequential.encode());
+    }
+
+    #[test]
+    fn tables_are_checked_on_threads_in_order() {
+        let est = PhasedEstimator::Cms(CmsOptions::default());
+        let blobs: Vec<Vec<u8>> = (0..5).map(|t| tile_table(t).encode()).collect();
+        let tables = check_train_tables(&est, &job(), &blobs, 2).unwrap();
+        assert!(tables.iter().zip(0..).all(|(t, i)| *t == tile_table(i)));
+        let mut bad = blobs.clone();
+        bad[3].truncate(10);
+        assert!(matches!(
+            check_train_tables(&est, &job(), &bad, 2),
+            Err(CvError::Decode(_))
+        ));
     }
 
     #[test]

@@ -309,7 +309,7 @@ pub fn render_local(prepared: &Prepared, job: &ResolvedJob) -> Result<AssembledI
                     .iter()
                     .map(|r| cv::check_train_block(&p, job, r))
                     .collect::<Result<Vec<_>, _>>()?;
-                let merged = cv::merge_train(cv::table_kind(&p), tables)?;
+                let merged = cv::merge_train(cv::table_kind(&p), tables, threads)?;
                 let blob = merged.solve(&p.solve_policy(), threads).encode();
                 let hash = protocol::hash::sha256_hex(&blob);
                 inputs.coefficients = Some(prepared.coefficients(&hash, &blob)?);

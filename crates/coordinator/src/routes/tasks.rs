@@ -10,7 +10,9 @@
 //! job's range and the layout of the job's earlier train results
 //! ([`protocol::cv::check_train_block`]); otherwise 422 `invalid_cells` naming the problem,
 //! and the task stays leased (the worker may fail it, or the lease expires and it is redone).
-//! Other phases carry no cell blocks. The upload that completes a phase triggers the phase
+//! Other phases carry no cell blocks. A train result's table is stored apart from its pixel
+//! frame (`results.cells`): the barrier reads the tables, image assembly only the pixels.
+//! The upload that completes a phase triggers the phase
 //! barrier or the job's finish ([`crate::finish::advance_job`]) in the background.
 
 use std::sync::Arc;
@@ -135,9 +137,22 @@ async fn upload(
         return Err(mismatch("sample range"));
     }
     let layout = check_cells(&st, &task, &decoded).await?;
+    // A train result's table is stored apart from its pixels (assembly never reads it).
+    let pixels_only;
+    let (data, cells): (&[u8], Option<&[u8]>) = match decoded.cells.as_slice() {
+        [block] => {
+            pixels_only = frame::encode(&protocol::TileResult {
+                header: decoded.header,
+                pixels: decoded.pixels.clone(),
+                cells: Vec::new(),
+            });
+            (&pixels_only, Some(&block.data))
+        }
+        _ => (&body, None),
+    };
     match st
         .store
-        .store_result(task.id, attempt, worker, &body)
+        .store_result(task.id, attempt, worker, data, cells)
         .await?
     {
         UploadOutcome::Accepted => {
