@@ -3,8 +3,10 @@
 //! 1. **Queue throughput**: one coordinator, `--sim-workers` simulated workers that lease a
 //!    task and upload a valid (all-zero) frame as fast as they can; reports leases/s
 //!    (lease + upload round trips) and the finishing time (assembly of every block).
-//! 2. **Farm overhead**: the same job rendered in-process (`render_image`, 2 threads) and by
-//!    a farm of 2 real workers × 1 slot on loopback; reports both wall times and the overhead.
+//! 2. **Farm overhead** (`--only overhead [--estimator cms] [--scene many-lights] [--res 256]
+//!    [--spp 64] [--tile 32] [--repeats 3]`): the same job rendered in-process (what `cvfarm
+//!    render` does: `render_estimator_image` with 2 threads, EXR encoded) and by a farm of 2 real
+//!    workers × 1 slot on loopback; reports both wall times (best of each) and the overhead.
 //! 3. **Merge + solve throughput** (DESIGN §8, "coordinator merge/solve throughput"): the
 //!    coordinator's barrier work on realistic training accumulators. `--sim-workers` threads
 //!    each produce the tables of their share of `--tiles` tiles (`--cells` cells per tile,
@@ -26,6 +28,9 @@
 //! ```
 
 use std::time::{Duration, Instant};
+
+#[path = "../../../crates/render/tests/cpu_time/mod.rs"]
+mod cpu_time;
 
 use e2e::{
     Backend, Coordinator, ENROLL_TOKEN, Farm, blank_result, scene_json, start_workers, stop_workers,
@@ -124,50 +129,112 @@ fn queue_throughput(backend: Backend, sims: usize, tasks: usize) {
     );
 }
 
-fn overhead(backend: Backend) {
-    let scene = scene_json("cornell-box/scene.json");
-    let (res, spp, tile) = (256u32, 32u32, 32u32);
+/// Farm vs in-process for one job: `--estimator` (default `path`), `--scene` (default
+/// `cornell-box`), `--res`, `--spp`, `--tile` (default 32), `--repeats` (default 3). The
+/// in-process side is what `cvfarm render -o x.exr` does: load and prepare the scene, run the
+/// estimator's phases with 2 threads (`render_estimator_image`), encode the EXR. The farm side
+/// is submit → done (all phases, barriers, assembly, EXR/PNG/stats stored) with 2 workers × 1
+/// slot. The two alternate and the best of each counts (the machine may be shared).
+fn overhead(backend: Backend, estimator: &str, scene_name: &str, res: u32, spp: u32, tile: u32) {
+    let scene = scene_json(&format!("{scene_name}/scene.json"));
+    let repeats = arg("--repeats", 3);
     let spec = serde_json::json!({
-        "scene": {"inline": scene}, "resolution": [res, res], "spp": spp, "tile_size": tile, "seed": 1,
+        "scene": {"inline": scene}, "estimator": {"kind": estimator},
+        "resolution": [res, res], "spp": spp, "tile_size": tile, "seed": 1,
     });
+    let job: protocol::JobSpec = serde_json::from_value(spec.clone()).expect("job spec");
     let desc: scene::SceneDesc = serde_json::from_value(scene.clone()).expect("desc");
+    let resolved = job
+        .resolve(&desc, &protocol::job::Limits::default())
+        .expect("resolve");
+    let scene_bytes = serde_json::to_vec(&scene).expect("scene bytes");
     let testfarm = Farm::start(backend);
     let client = &testfarm.client;
     let ws = start_workers(&testfarm.url(), 2);
     std::thread::sleep(Duration::from_millis(300)); // workers registered and polling
-    // The machine may be shared: alternate the two and keep the best of each.
     let (mut local, mut farm, mut tasks) = (f64::INFINITY, f64::INFINITY, 0);
-    for _ in 0..3 {
-        // In-process: the same render the farm's tasks do (scene load, prepare, 2 threads).
-        let t0 = Instant::now();
-        let mut loaded = scene::load(&desc, &scene::MemoryAssets::new()).expect("load");
-        loaded.scene.film.width = res;
-        loaded.scene.film.height = res;
-        let settings = render::integrator::RenderSettings {
-            spp,
-            seed: 1,
-            ..render::integrator::RenderSettings::from_scene(&loaded.scene)
-        };
-        let rs = render::integrator::RenderScene::new(&loaded.scene, &settings).expect("prepare");
+    let (mut local_cpu, mut farm_cpu) = (f64::INFINITY, f64::INFINITY);
+    let mut phases = String::new();
+    for _ in 0..repeats.max(1) {
+        let (t0, c0) = (Instant::now(), cpu_time::cpu_seconds());
+        let p = worker::tile::Prepared::new(
+            &scene_bytes,
+            Default::default(),
+            &resolved,
+            &job.estimator,
+        )
+        .expect("prepare");
         let opts = render::tile::RenderOptions {
             tile_size: tile,
             threads: 2,
         };
-        render::tile::render_image(&rs, &settings, &opts, &|_, _| {}).expect("render");
+        let (film, _, _) = render::integrator::cv::render_estimator_image(
+            &p.scene,
+            &p.settings,
+            &opts,
+            &|_, _| {},
+        )
+        .expect("render");
+        let layers = film
+            .layers()
+            .into_iter()
+            .map(|l| imageio::RgbLayer {
+                name: l.name.to_owned(),
+                data: l.data,
+            })
+            .collect::<Vec<_>>();
+        let exr = imageio::encode_exr(res, res, &layers).expect("exr");
+        assert!(!exr.is_empty());
         local = local.min(t0.elapsed().as_secs_f64());
+        local_cpu = local_cpu.min(cpu_time::cpu_seconds() - c0);
 
-        let t0 = Instant::now();
+        let (t0, c0) = (Instant::now(), cpu_time::cpu_seconds());
         let id = client.submit(&spec);
-        let st = client.wait(id, Duration::from_secs(600));
-        farm = farm.min(t0.elapsed().as_secs_f64());
-        assert_eq!(st.state, JobState::Done);
-        tasks = st.tasks_total;
+        // Poll often: the 50 ms of `Client::wait` would be a visible share of a short job.
+        let st = loop {
+            let s = client.status(id);
+            if !matches!(s.state, JobState::Running | JobState::Paused) {
+                break s;
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        };
+        let t = t0.elapsed().as_secs_f64();
+        // The coordinator and both workers run in this process: its CPU time is the farm's.
+        farm_cpu = farm_cpu.min(cpu_time::cpu_seconds() - c0);
+        assert_eq!(st.state, JobState::Done, "{st:?}");
+        if t < farm {
+            farm = t;
+            let stats = client.stats(id);
+            phases = stats["phases"]
+                .as_array()
+                .into_iter()
+                .flatten()
+                .map(|p| {
+                    let barrier = p["barrier"]["seconds"]
+                        .as_f64()
+                        .map_or(String::new(), |b| format!(" + barrier {b:.2}"));
+                    format!(
+                        "{} {:.2}{barrier}",
+                        p["name"].as_str().unwrap_or("?"),
+                        p["seconds"].as_f64().unwrap_or(0.0)
+                    )
+                })
+                .collect::<Vec<_>>()
+                .join(", ");
+        }
+        tasks = client
+            .stats(id)
+            .get("tasks")
+            .and_then(serde_json::Value::as_u64)
+            .unwrap_or(0);
     }
     stop_workers(ws);
     println!(
-        "overhead [{backend:?}]: {res}x{res} cornell-box {spp} spp, {tasks} tiles of {tile}, best of 3: in-process 2 threads {local:.3} s, \
-         farm 2 workers x 1 slot {farm:.3} s (submit to done, incl. assembly) => overhead {:+.1} %",
-        (farm / local - 1.0) * 100.0
+        "overhead [{backend:?}]: {estimator}, {scene_name} {res}x{res} {spp} spp, tiles of {tile}, {tasks} tasks, best of {repeats}: \
+         in-process 2 threads {local:.3} s, farm 2 workers x 1 slot {farm:.3} s (submit to done; {phases}) => overhead {:+.1} %; \
+         CPU seconds (whole process, best of {repeats}): in-process {local_cpu:.2}, farm {farm_cpu:.2} ({:+.1} %)",
+        (farm / local - 1.0) * 100.0,
+        (farm_cpu / local_cpu - 1.0) * 100.0
     );
 }
 
@@ -375,17 +442,23 @@ fn cms_job(backend: Backend, workers: usize, scene: &str, res: u32, spp: u32) {
     }
 }
 
-/// The train barrier of job `id` redone step by step from its stored results, with the
-/// coordinator's own functions (`protocol::cv`, `AccumulatorTable`), each step timed (best of 3).
+/// The train barrier of job `id` redone step by step from its stored tables, with the
+/// coordinator's own functions (`protocol::cv`, `AccumulatorTable`), each step timed on 1 and
+/// 2 threads (best of 3).
 fn barrier_breakdown(coord: &Coordinator, id: i64, train: i64) {
     let store = &coord.state.store;
-    let blobs = coord
-        .block_on(store.phase_results(id, train))
-        .expect("train results");
+    let blobs: Vec<Vec<u8>> = coord
+        .block_on(store.phase_tables(id, train))
+        .expect("train tables")
+        .into_iter()
+        .map(|t| match t {
+            coordinator::store::StoredTable::Table(b) => b,
+            coordinator::store::StoredTable::Frame(_) => panic!("a table stored inside its frame"),
+        })
+        .collect();
     let job = coord.block_on(store.job(id)).expect("store").expect("job");
     let spec: protocol::JobSpec = serde_json::from_str(&job.spec).expect("spec");
     let est = spec.estimator.phased().expect("a phased estimator");
-    let max_pixels = usize::MAX >> 1;
     let best = |f: &mut dyn FnMut()| {
         (0..3)
             .map(|_| {
@@ -395,77 +468,56 @@ fn barrier_breakdown(coord: &Coordinator, id: i64, train: i64) {
             })
             .fold(f64::INFINITY, f64::min)
     };
-    let mut tiles = Vec::new();
-    let decode_s = best(&mut || {
-        tiles = blobs
-            .iter()
-            .map(|b| protocol::frame::decode(b, max_pixels).expect("frame"))
-            .collect();
-    });
-    let mut tables = Vec::new();
-    let check_s = best(&mut || {
-        tables = tiles
-            .iter()
-            .map(|t| protocol::cv::check_train_block(&est, &job.resolved, t).expect("block"))
-            .collect();
-    });
-    let records: usize = tables.iter().map(AccumulatorTable::len).sum();
-    let block_bytes: usize = tiles
-        .iter()
-        .flat_map(|t| &t.cells)
-        .map(|c| c.data.len())
-        .sum();
     let kind = protocol::cv::table_kind(&est);
-    // The barrier moves the tables into the merge: clone them before the clock starts.
-    let mut copies: Vec<Vec<AccumulatorTable>> = (0..3).map(|_| tables.clone()).collect();
-    let mut merged = None;
-    let merge_s = best(&mut || {
-        let t = copies.pop().expect("a copy per run");
-        merged = Some(protocol::cv::merge_train(kind, t).expect("merge"));
-    });
-    let merged = merged.expect("merged");
     let policy = est.solve_policy();
-    let solve: Vec<(usize, f64)> = [1usize, 2]
-        .into_iter()
-        .map(|threads| {
-            (
-                threads,
-                best(&mut || {
-                    let _ = merged.solve(&policy, threads);
-                }),
-            )
-        })
-        .collect();
+    let mut rows = Vec::new();
+    let (mut records, mut cells) = (0, 0);
+    for threads in [1usize, 2] {
+        let mut tables = Vec::new();
+        let check_s = best(&mut || {
+            tables = protocol::cv::check_train_tables(&est, &job.resolved, &blobs, threads)
+                .expect("tables");
+        });
+        records = tables.iter().map(AccumulatorTable::len).sum();
+        // The barrier moves the tables into the merge: clone them before the clock starts.
+        let mut copies: Vec<Vec<AccumulatorTable>> = (0..3).map(|_| tables.clone()).collect();
+        let mut merged = None;
+        let merge_s = best(&mut || {
+            let t = copies.pop().expect("a copy per run");
+            merged = Some(protocol::cv::merge_train(kind, t, threads).expect("merge"));
+        });
+        let merged = merged.expect("merged");
+        cells = merged.len();
+        let solve_s = best(&mut || {
+            let _ = merged.solve(&policy, threads);
+        });
+        rows.push((threads, check_s, merge_s, solve_s));
+    }
+    let bytes: usize = blobs.iter().map(Vec::len).sum();
     println!(
-        "\ntrain barrier step by step: {} tile results ({:.1} MiB of cell blocks, {records} cell records, \
-         {:.0} per tile), {} distinct cells\n",
+        "\ntrain barrier step by step: {} stored tables ({:.1} MiB, {records} cell records, \
+         {:.0} per tile), {cells} distinct cells\n",
         blobs.len(),
-        block_bytes as f64 / (1 << 20) as f64,
+        bytes as f64 / (1 << 20) as f64,
         records as f64 / blobs.len().max(1) as f64,
-        merged.len()
     );
-    println!("| step | time (best of 3) | throughput |");
-    println!("|---|---:|---:|");
-    println!(
-        "| decode frames (pixels + blocks) | {:.1} ms | {:.0} tiles/s |",
-        decode_s * 1e3,
-        blobs.len() as f64 / decode_s
-    );
-    println!(
-        "| validate + decode cell tables (`check_train_block`) | {:.1} ms | {:.2} M records/s |",
-        check_s * 1e3,
-        records as f64 / check_s / 1e6
-    );
-    println!(
-        "| merge in canonical order (`merge_train`) | {:.1} ms | {:.2} M merged cells/s |",
-        merge_s * 1e3,
-        records as f64 / merge_s / 1e6
-    );
-    for (threads, s) in solve {
+    println!("| step | threads | time (best of 3) | throughput |");
+    println!("|---|---:|---:|---:|");
+    for (threads, check_s, merge_s, solve_s) in rows {
         println!(
-            "| solve, {threads} thread(s) | {:.1} ms | {:.3} M solved cells/s |",
-            s * 1e3,
-            merged.len() as f64 / s / 1e6
+            "| validate + decode tables (`check_train_tables`) | {threads} | {:.1} ms | {:.2} M records/s |",
+            check_s * 1e3,
+            records as f64 / check_s / 1e6
+        );
+        println!(
+            "| merge in canonical order (`merge_train`) | {threads} | {:.1} ms | {:.2} M merged cells/s |",
+            merge_s * 1e3,
+            records as f64 / merge_s / 1e6
+        );
+        println!(
+            "| solve | {threads} | {:.1} ms | {:.3} M solved cells/s |",
+            solve_s * 1e3,
+            cells as f64 / solve_s / 1e6
         );
     }
 }
@@ -509,6 +561,23 @@ fn main() {
         );
     }
     if run("overhead") {
-        overhead(backend);
+        let estimator = args
+            .iter()
+            .position(|a| a == "--estimator")
+            .and_then(|i| args.get(i + 1))
+            .map_or("path", String::as_str);
+        let scene = args
+            .iter()
+            .position(|a| a == "--scene")
+            .and_then(|i| args.get(i + 1))
+            .map_or("cornell-box", String::as_str);
+        overhead(
+            backend,
+            estimator,
+            scene,
+            arg("--res", 256) as u32,
+            arg("--spp", 32) as u32,
+            arg("--tile", 32) as u32,
+        );
     }
 }
