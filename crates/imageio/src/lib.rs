@@ -24,6 +24,7 @@
 
 #![deny(missing_docs)]
 
+use image::ImageEncoder;
 use std::collections::BTreeMap;
 use std::io::Cursor;
 use std::path::{Path, PathBuf};
@@ -408,12 +409,17 @@ pub fn encode_png_preview(
         .iter()
         .flat_map(|p| p.map(|v| (linear_to_srgb(v.clamp(0.0, 1.0)) * 255.0 + 0.5) as u8))
         .collect();
-    let buf = image::RgbImage::from_raw(width, height, bytes)
-        .ok_or_else(|| ImageError::InvalidInput("pixel buffer size".into()))?;
-    let mut out = Cursor::new(Vec::new());
-    buf.write_to(&mut out, image::ImageFormat::Png)
-        .map_err(|e| ImageError::Ldr(e.to_string()))?;
-    Ok(out.into_inner())
+    // A preview is written once per job and downloaded rarely: fast deflate, not the
+    // smallest file (the default level made it a visible share of a short farm job).
+    let mut out = Vec::new();
+    image::codecs::png::PngEncoder::new_with_quality(
+        &mut out,
+        image::codecs::png::CompressionType::Fast,
+        image::codecs::png::FilterType::Adaptive,
+    )
+    .write_image(&bytes, width, height, image::ExtendedColorType::Rgb8)
+    .map_err(|e| ImageError::Ldr(e.to_string()))?;
+    Ok(out)
 }
 
 /// Writes a tonemapped preview PNG (see [`encode_png_preview`]).
