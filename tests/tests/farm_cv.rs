@@ -24,6 +24,17 @@ fn spec(scene: &serde_json::Value, estimator: serde_json::Value, seed: u64) -> s
     })
 }
 
+/// [`spec`] at a resolution of two training tiles ([`estimators::spec::TRAIN_TILE`] + 8 × 24).
+fn spec_two_train_tiles(
+    scene: &serde_json::Value,
+    estimator: serde_json::Value,
+    seed: u64,
+) -> serde_json::Value {
+    let mut s = spec(scene, estimator, seed);
+    s["resolution"] = serde_json::json!([estimators::spec::TRAIN_TILE + 8, 24]);
+    s
+}
+
 /// What `cvfarm render --estimator … -o x.exr` writes for the same job: the estimator parsed
 /// from the job's JSON into the renderer's own type, `render_estimator_image`, the film's
 /// layers. (The CLI adds estimator layers; the farm image has the film's four.)
@@ -188,7 +199,7 @@ fn bad_train_uploads_are_4xx_json_and_the_task_is_redone() {
     let scene = scene_json("cornell-box/scene.json");
     // Without `relative` the train phase comes first.
     let est = serde_json::json!({ "kind": "cms", "relative": false });
-    let id = client.submit(&spec(&scene, est.clone(), 2));
+    let id = client.submit(&spec_two_train_tiles(&scene, est.clone(), 2));
     let fake = FakeWorker::register(&coord.url(), 2_000);
     let l = fake.lease().expect("lease");
     assert_eq!(l.phase, PhaseKind::Train);
@@ -304,7 +315,7 @@ fn coordinator_restart_between_train_and_render_finishes_identically() {
     let mut farm = Farm::start(Backend::Sqlite);
     let scene = scene_json("cornell-box/scene.json");
     let est = serde_json::json!({ "kind": "cms", "relative": false, "training_spp": 8 });
-    let id = farm.client.submit(&spec(&scene, est.clone(), 13));
+    let id = farm.client.submit(&spec_two_train_tiles(&scene, est.clone(), 13));
     // Render the whole train phase with a fake worker, so the barrier is due with no
     // worker around; then kill the coordinator before or after it ran.
     let fake = FakeWorker::register(&farm.url(), 2_000);

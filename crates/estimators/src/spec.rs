@@ -23,10 +23,11 @@ use crate::cell::ColorMode;
 
 /// Fixed tile edge of the training phase (canonical accumulator merge order). Every training
 /// tile carries the accumulators of all cells its paths touch, and indirect bounces touch most
-/// of the grid, so the volume a farm uploads and merges scales with the tile count: 64-pixel
-/// tiles send far less than 32-pixel ones did (many-lights 256², 64 lights: 100 k → 26 k records,
-/// 79 → 48 MiB, train barrier 0.44 → 0.13 s) while a 256² image still has 16 training tasks.
-pub const TRAIN_TILE: u32 = 64;
+/// of the grid, so the volume a farm uploads, stores, decodes and merges scales with the tile
+/// count (many-lights 256², 64 lights: 32-pixel tiles 100 k records / 79 MiB, 64-pixel tiles
+/// 26 k / 48 MiB, 128-pixel tiles ≈ 6.6 k / 12 MiB). 128 keeps that a small share of a farm
+/// job while a 256² image still has 4 training tasks and a 1080p one 135.
+pub const TRAIN_TILE: u32 = 128;
 
 /// Colour handling of the CV coefficients [Hua §4.3].
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -286,8 +287,14 @@ pub enum PhasedEstimator {
 }
 
 impl PhasedEstimator {
-    /// The phase split of a job with `spp` samples per pixel.
-    pub fn phases(&self, spp: u32) -> PhaseSamples {
+    /// The phase split of a job with `spp` samples per pixel and paths of at most
+    /// `max_depth` vertices (Mitsuba's meaning; `u32::MAX` for unbounded). When no vertex can
+    /// be controlled ([`Self::controls_any_vertex`]) every sample is a render sample: there is
+    /// nothing to train, and a job without phase barriers costs what `path` costs.
+    pub fn phases(&self, spp: u32, max_depth: u32) -> PhaseSamples {
+        if !self.controls_any_vertex(max_depth) {
+            return PhaseSamples::split(spp, 0, 0);
+        }
         match self {
             Self::Cms(o) => {
                 let s = if o.relative {
@@ -323,6 +330,14 @@ impl PhasedEstimator {
             Self::Cms(o) => o.min_depth,
             _ => 0,
         }
+    }
+
+    /// Whether a path of at most `max_depth` vertices has a vertex the CV controls: vertex `d`
+    /// scatters (has direct lighting and a bounce to control) when `d + 1 < max_depth`, and
+    /// the CV starts at [`Self::min_depth`]. False e.g. for `cms` at depth 2 with the default
+    /// `min_depth` 1: the job is then its base estimator.
+    pub fn controls_any_vertex(&self, max_depth: u32) -> bool {
+        u64::from(self.min_depth()) + 1 < u64::from(max_depth)
     }
 
     /// Checks the ranges; returns the offending field and why.
@@ -391,7 +406,7 @@ mod tests {
 
     #[test]
     fn cms_surrogate_only_when_relative() {
-        let rel = PhasedEstimator::Cms(CmsOptions::default()).phases(64);
+        let rel = PhasedEstimator::Cms(CmsOptions::default()).phases(64, 5);
         assert_eq!(
             (rel.surrogate, rel.train, rel.render),
             (0..1, 1..17, 17..64)
@@ -400,8 +415,26 @@ mod tests {
             relative: false,
             ..CmsOptions::default()
         })
-        .phases(8);
+        .phases(8, 5);
         assert_eq!((abs.surrogate, abs.train, abs.render), (0..0, 0..8, 8..8));
+    }
+
+    #[test]
+    fn nothing_to_control_means_one_render_range() {
+        let cms = PhasedEstimator::Cms(CmsOptions::default());
+        // min_depth 1: vertex 1 scatters only when max_depth ≥ 3.
+        assert!(!cms.controls_any_vertex(2) && cms.controls_any_vertex(3));
+        assert!(cms.controls_any_vertex(u32::MAX));
+        let p = cms.phases(64, 2);
+        assert_eq!((p.surrogate, p.train, p.render), (0..0, 0..0, 0..64));
+        assert_eq!(cms.phases(64, 3).train, 1..17);
+        let first_hit = PhasedEstimator::Cms(CmsOptions {
+            min_depth: 0,
+            ..CmsOptions::default()
+        });
+        assert_eq!(first_hit.phases(64, 2).train, 1..17);
+        let om = PhasedEstimator::OptimalMis(Default::default());
+        assert!(om.controls_any_vertex(2) && !om.controls_any_vertex(1));
     }
 
     #[test]

@@ -533,19 +533,26 @@ fn range_task_count(job: &ResolvedJob, tile: u32, samples: &Range<u32>, per_task
 }
 
 /// Phase shapes of a job: (kind, tile edge, samples, samples per task), empty phases left out.
+/// Smallest tile edge of a `surrogate` task. The phase takes 1–2 samples per pixel, so a
+/// 32-pixel tile is a few milliseconds of rendering beside a lease and an upload with two
+/// durable commits; 128-pixel tiles (16 k pixels) make the rendering dominate. A pixel's
+/// sums, hence the surrogate, do not depend on the tiling.
+pub const SURROGATE_TILE: u32 = 128;
+
 fn phase_shapes(job: &ResolvedJob, est: &EstimatorSpec) -> Vec<(PhaseKind, u32, Range<u32>, u32)> {
     let spt = job.samples_per_task;
     let Some(p) = est.phased() else {
         return vec![(PhaseKind::Render, job.tile_size, 0..job.spp, spt)];
     };
-    let ph = p.phases(job.spp);
+    let max_depth = u32::try_from(job.max_depth).unwrap_or(u32::MAX); // −1: unbounded
+    let ph = p.phases(job.spp, max_depth);
     let mut out = Vec::with_capacity(3);
     // The surrogate exists only for relative-variance training [Hua eq. 25] (as in
     // `render::integrator::cv::CvJob::needs_surrogate`).
-    // Its tasks are 1–2 spp: tiles of at least TRAIN_TILE keep the per-task cost (lease,
+    // Its tasks are 1–2 spp: tiles of at least SURROGATE_TILE keep the per-task cost (lease,
     // upload) small beside the rendering; a pixel's sums do not depend on the tiling.
     if p.relative() && !ph.surrogate.is_empty() {
-        let tile = job.tile_size.max(TRAIN_TILE);
+        let tile = job.tile_size.max(SURROGATE_TILE);
         out.push((PhaseKind::Surrogate, tile, ph.surrogate, spt));
     }
     // Training tiles are fixed and never split in samples: the canonical merge order of
@@ -574,7 +581,7 @@ pub fn plan_task_count(job: &ResolvedJob, est: &EstimatorSpec) -> u64 {
 ///   `samples_per_task` (= [`plan_tasks`]);
 /// - `cms`, `per_light_cv`, `optimal_mis` (sample ranges from
 ///   [`PhasedEstimator::phases`]): `surrogate` (only for relative-variance `cms`; tiles of
-///   `max(tile_size, TRAIN_TILE)`, split by `samples_per_task`), `train` (tiles of [`TRAIN_TILE`], the whole
+///   `max(tile_size, SURROGATE_TILE)`, split by `samples_per_task`), `train` (tiles of [`TRAIN_TILE`], the whole
 ///   training range, one task per tile), `render` (tiles of `tile_size`, split by
 ///   `samples_per_task`). Phases without samples are left out.
 pub fn plan_phases(job: &ResolvedJob, est: &EstimatorSpec) -> Vec<PhasePlan> {
@@ -803,10 +810,14 @@ mod tests {
             kinds,
             [PhaseKind::Surrogate, PhaseKind::Train, PhaseKind::Render]
         );
-        // Surrogate and training: tiles of (at least) TRAIN_TILE; training takes the whole
-        // range in one task per tile.
+        // Surrogate: tiles of (at least) SURROGATE_TILE; training: tiles of TRAIN_TILE, the
+        // whole range in one task per tile.
+        let (sx, sy) = (
+            40u32.div_ceil(SURROGATE_TILE),
+            24u32.div_ceil(SURROGATE_TILE),
+        );
+        assert_eq!(plan[0].tasks.len(), (sx * sy) as usize);
         let (tx, ty) = (40u32.div_ceil(TRAIN_TILE), 24u32.div_ceil(TRAIN_TILE));
-        assert_eq!(plan[0].tasks.len(), (tx * ty) as usize);
         assert_eq!(plan[1].tasks.len(), (tx * ty) as usize);
         assert!(
             plan[1]

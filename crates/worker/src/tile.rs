@@ -263,9 +263,21 @@ impl Prepared {
                 (t.out.film, vec![block])
             }
             (Some(j), PhaseKind::Render) => {
-                let table = inputs.coefficients.as_deref().ok_or_else(|| {
-                    TaskError::Input("the render phase needs a coefficient table".into())
-                })?;
+                // Without a train phase (no vertex is controlled) the table is empty, as the
+                // in-process driver's solve of no accumulators gives it.
+                let empty;
+                let table = match inputs.coefficients.as_deref() {
+                    Some(t) => t,
+                    None if j.phases().train.is_empty() => {
+                        empty = j.coefficient_table(&Default::default())?;
+                        &empty
+                    }
+                    None => {
+                        return Err(TaskError::Input(
+                            "the render phase needs a coefficient table".into(),
+                        ));
+                    }
+                };
                 (j.render_tile(tile, samples, table).out.film, Vec::new())
             }
         };
@@ -406,12 +418,16 @@ mod tests {
     /// The farm's plan with the coordinator's barriers gives the bits of `cvfarm render`
     /// (`render_estimator_image`) for a CV job with the default `samples_per_task`.
     fn local_equals_in_process_driver(est: EstimatorSpec, seed: u64) {
+        local_equals_in_process_driver_at(est, seed, 5);
+    }
+
+    fn local_equals_in_process_driver_at(est: EstimatorSpec, seed: u64, max_depth: i32) {
         let j = ResolvedJob {
             width: 48,
             height: 32,
             spp: 24,
             seed,
-            max_depth: 5,
+            max_depth,
             rr_depth: 5,
             hide_emitters: false,
             tile_size: 16,
@@ -430,7 +446,10 @@ mod tests {
             &|_, _| {},
         )
         .unwrap();
-        assert!(report.cells > 0, "{report:?}");
+        let controls = est
+            .phased()
+            .is_some_and(|p| p.controls_any_vertex(max_depth as u32));
+        assert_eq!(report.cells > 0, controls, "{report:?}");
         let layers = film.layers();
         let flat = |i: usize| -> Vec<u32> {
             layers[i]
@@ -453,6 +472,38 @@ mod tests {
     #[test]
     fn cms_render_local_equals_render_estimator_image_bitwise() {
         local_equals_in_process_driver(EstimatorSpec::Cms(Default::default()), 9);
+    }
+
+    /// With the default `min_depth` 1 a depth-2 `cms` job controls nothing: one render phase
+    /// (no training, no barrier) whose image is `path`'s, bit for bit.
+    #[test]
+    fn cms_at_depth_two_is_one_render_phase_with_the_bits_of_path() {
+        let cms = EstimatorSpec::Cms(Default::default());
+        local_equals_in_process_driver_at(cms.clone(), 9, 2);
+        let j = ResolvedJob {
+            width: 48,
+            height: 32,
+            spp: 24,
+            seed: 9,
+            max_depth: 2,
+            rr_depth: 5,
+            hide_emitters: false,
+            tile_size: 16,
+            samples_per_task: 24,
+        };
+        let plan = protocol::job::plan_phases(&j, &cms);
+        assert_eq!(plan.len(), 1);
+        assert_eq!(plan[0].kind, PhaseKind::Render);
+        let image = |est: &EstimatorSpec| {
+            let p = Prepared::new(&cornell(), BTreeMap::new(), &j, est).unwrap();
+            let img = render_local(&p, &j).unwrap();
+            img.beauty.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+        };
+        let path = image(&EstimatorSpec::Path(Default::default()));
+        assert!(image(&cms) == path);
+        // At depth 3 the second vertex is controlled: phases, and other bits.
+        let j3 = ResolvedJob { max_depth: 3, ..j };
+        assert_eq!(protocol::job::plan_phases(&j3, &cms).len(), 3);
     }
 
     #[test]

@@ -403,13 +403,14 @@ struct CvContext<'a> {
     base: super::MisHeuristic,
     /// Vertices shallower than this are not controlled (`cms`'s `min_depth`).
     min_depth: u32,
+    /// Whether any vertex is controlled ([`PhasedEstimator::controls_any_vertex`]).
+    controls: bool,
 }
 
 impl CvContext<'_> {
     /// See [`CvJob::controls_any_vertex`].
     fn controls_any_vertex(&self) -> bool {
-        // Vertex `d` scatters when `d + 1 < max_depth`.
-        u64::from(self.min_depth) + 1 < u64::from(self.st.max_depth_u32())
+        self.controls
     }
 }
 
@@ -949,13 +950,14 @@ impl<'a> CvJob<'a> {
                 layout,
                 color: color.mode(),
                 min_depth: estimator.min_depth(),
+                controls: estimator.controls_any_vertex(settings.max_depth_u32()),
                 base: match estimator.base() {
                     CvBase::Mis => settings.mis,
                     CvBase::Balance => super::MisHeuristic::Balance,
                 },
             },
             estimator,
-            phases: estimator.phases(settings.spp),
+            phases: estimator.phases(settings.spp, settings.max_depth_u32()),
             table_len,
         }))
     }
