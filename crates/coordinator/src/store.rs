@@ -331,10 +331,12 @@ impl Store {
         };
         let pool = match backend {
             // SQLite has one writer: one connection serialises everything and avoids
-            // SQLITE_BUSY upgrades inside transactions.
+            // SQLITE_BUSY upgrades inside transactions. It is a local file: no liveness ping
+            // before every acquire (a round trip to the connection's thread per statement).
             Backend::Sqlite => {
                 AnyPoolOptions::new()
                     .max_connections(1)
+                    .test_before_acquire(false)
                     .connect(url)
                     .await?
             }

@@ -154,7 +154,7 @@ fn overhead(backend: Backend, estimator: &str, scene_name: &str, res: u32, spp: 
     std::thread::sleep(Duration::from_millis(300)); // workers registered and polling
     let (mut local, mut farm, mut tasks) = (f64::INFINITY, f64::INFINITY, 0);
     let (mut local_cpu, mut farm_cpu) = (f64::INFINITY, f64::INFINITY);
-    let mut phases = String::new();
+    let (mut phases, mut local_phases) = (String::new(), String::new());
     for _ in 0..repeats.max(1) {
         let (t0, c0) = (Instant::now(), cpu_time::cpu_seconds());
         let p = worker::tile::Prepared::new(
@@ -168,7 +168,8 @@ fn overhead(backend: Backend, estimator: &str, scene_name: &str, res: u32, spp: 
             tile_size: tile,
             threads: 2,
         };
-        let (film, _, _) = render::integrator::cv::render_estimator_image(
+        let t_prep = t0.elapsed().as_secs_f64();
+        let (film, _, report) = render::integrator::cv::render_estimator_image(
             &p.scene,
             &p.settings,
             &opts,
@@ -185,7 +186,15 @@ fn overhead(backend: Backend, estimator: &str, scene_name: &str, res: u32, spp: 
             .collect::<Vec<_>>();
         let exr = imageio::encode_exr(res, res, &layers).expect("exr");
         assert!(!exr.is_empty());
-        local = local.min(t0.elapsed().as_secs_f64());
+        let t = t0.elapsed().as_secs_f64();
+        if t < local {
+            let ph = &report.phases;
+            local_phases = format!(
+                "prepare {t_prep:.2}, surrogate+denoise {:.2}, train {:.2}, merge+solve {:.2}, render {:.2}",
+                ph.surrogate, ph.train, ph.solve, ph.render
+            );
+        }
+        local = local.min(t);
         local_cpu = local_cpu.min(cpu_time::cpu_seconds() - c0);
 
         let (t0, c0) = (Instant::now(), cpu_time::cpu_seconds());
@@ -231,7 +240,7 @@ fn overhead(backend: Backend, estimator: &str, scene_name: &str, res: u32, spp: 
     stop_workers(ws);
     println!(
         "overhead [{backend:?}]: {estimator}, {scene_name} {res}x{res} {spp} spp, tiles of {tile}, {tasks} tasks, best of {repeats}: \
-         in-process 2 threads {local:.3} s, farm 2 workers x 1 slot {farm:.3} s (submit to done; {phases}) => overhead {:+.1} %; \
+         in-process 2 threads {local:.3} s ({local_phases}), farm 2 workers x 1 slot {farm:.3} s (submit to done; {phases}) => overhead {:+.1} %; \
          CPU seconds (whole process, best of {repeats}): in-process {local_cpu:.2}, farm {farm_cpu:.2} ({:+.1} %)",
         (farm / local - 1.0) * 100.0,
         (farm_cpu / local_cpu - 1.0) * 100.0
