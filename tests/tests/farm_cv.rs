@@ -315,7 +315,9 @@ fn coordinator_restart_between_train_and_render_finishes_identically() {
     let mut farm = Farm::start(Backend::Sqlite);
     let scene = scene_json("cornell-box/scene.json");
     let est = serde_json::json!({ "kind": "cms", "relative": false, "training_spp": 8 });
-    let id = farm.client.submit(&spec_two_train_tiles(&scene, est.clone(), 13));
+    let id = farm
+        .client
+        .submit(&spec_two_train_tiles(&scene, est.clone(), 13));
     // Render the whole train phase with a fake worker, so the barrier is due with no
     // worker around; then kill the coordinator before or after it ran.
     let fake = FakeWorker::register(&farm.url(), 2_000);
