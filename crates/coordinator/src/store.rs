@@ -917,32 +917,37 @@ impl Store {
     /// Accepted results of a phase in canonical task order: frames of header and pixels (a
     /// `train` result's table is kept apart, see [`Store::phase_tables`]).
     pub async fn phase_results(&self, job_id: i64, phase_idx: i64) -> Result<Vec<Vec<u8>>> {
-        let sql = self.sql(
-            "SELECT r.data AS data FROM tasks t JOIN results r ON r.task_id = t.id AND r.attempt = t.done_attempt \
-             WHERE t.job_id = ? AND t.phase_idx = ? AND t.state = 'done' ORDER BY t.seq",
-        );
-        let rows = sqlx::query(&sql)
+        let rows = self
+            .accepted_results(job_id, phase_idx, "r.data AS data")
+            .await?;
+        rows.iter().map(|r| Ok(r.try_get("data")?)).collect()
+    }
+
+    /// `columns` of the accepted results (`r`) of a phase's done tasks (`t`), in canonical
+    /// task order.
+    async fn accepted_results(
+        &self,
+        job_id: i64,
+        phase_idx: i64,
+        columns: &str,
+    ) -> Result<Vec<AnyRow>> {
+        let sql = self.sql(&format!(
+            "SELECT {columns} FROM tasks t JOIN results r ON r.task_id = t.id AND r.attempt = t.done_attempt \
+             WHERE t.job_id = ? AND t.phase_idx = ? AND t.state = 'done' ORDER BY t.seq"
+        ));
+        Ok(sqlx::query(&sql)
             .bind(job_id)
             .bind(phase_idx)
             .fetch_all(&self.pool)
-            .await?;
-        rows.iter().map(|r| Ok(r.try_get("data")?)).collect()
+            .await?)
     }
 
     /// The training tables of a phase's accepted results in canonical task order (the train
     /// barrier's input), each as stored: the table alone, or, for a result stored before
     /// tables were kept apart, the whole frame that carries it.
     pub async fn phase_tables(&self, job_id: i64, phase_idx: i64) -> Result<Vec<StoredTable>> {
-        let sql = self.sql(
-            "SELECT r.cells AS cells, CASE WHEN r.cells IS NULL THEN r.data END AS data \
-             FROM tasks t JOIN results r ON r.task_id = t.id AND r.attempt = t.done_attempt \
-             WHERE t.job_id = ? AND t.phase_idx = ? AND t.state = 'done' ORDER BY t.seq",
-        );
-        let rows = sqlx::query(&sql)
-            .bind(job_id)
-            .bind(phase_idx)
-            .fetch_all(&self.pool)
-            .await?;
+        let columns = "r.cells AS cells, CASE WHEN r.cells IS NULL THEN r.data END AS data";
+        let rows = self.accepted_results(job_id, phase_idx, columns).await?;
         rows.iter()
             .map(|r| {
                 Ok(match r.try_get::<Option<Vec<u8>>, _>("cells")? {

@@ -14,7 +14,7 @@ mod cv_support;
 
 use std::time::Instant;
 
-use cv_support::{load, rel_mse, render};
+use cv_support::{rel_mse, render};
 use render::integrator::cms::CmsOptions;
 use render::integrator::optimal_mis::OptimalMisOptions;
 use render::integrator::per_light_cv::PerLightCvOptions;
@@ -65,14 +65,7 @@ fn measure_equal_spp_ratios() {
     for sd in scenes.split(',') {
         let (name, d) = sd.split_once(':').expect("scene:depth");
         let depth: i32 = d.parse().unwrap();
-        let s0 = scene::load_file(&cv_support::root().join(format!("scenes/{name}/scene.json")))
-            .unwrap()
-            .scene;
-        let s = load(
-            &format!("scenes/{name}/scene.json"),
-            s0.film.width / scale,
-            s0.film.height / scale,
-        );
+        let s = cv_support::load_scaled(&format!("scenes/{name}/scene.json"), scale);
         let (reference, _) = render(&s, Estimator::Path, ref_spp, 4242, Some(depth), opts);
         let run = |e: Estimator| {
             let (mut err, mut cpu, mut wall) = (0.0, 0.0, 0.0);

@@ -12,7 +12,6 @@ mod cv_support;
 
 use std::ops::Range;
 
-use cv_support::load;
 use estimators::surrogate::surrogate_image;
 use render::integrator::cv::{CvJob, TRAIN_TILE, film_moments};
 use render::tile::render_tile_counted;
@@ -57,14 +56,7 @@ fn measure_phase_overhead() {
     for sd in scenes.split(',') {
         let (name, d) = sd.split_once(':').expect("scene:depth");
         let depth: i32 = d.parse().unwrap();
-        let s0 = scene::load_file(&cv_support::root().join(format!("scenes/{name}/scene.json")))
-            .unwrap()
-            .scene;
-        let s = load(
-            &format!("scenes/{name}/scene.json"),
-            s0.film.width / scale,
-            s0.film.height / scale,
-        );
+        let s = cv_support::load_scaled(&format!("scenes/{name}/scene.json"), scale);
         let mut obj = serde_json::Map::new();
         let mut parts = spec.split(':');
         obj.insert("kind".into(), parts.next().unwrap().into());

@@ -21,6 +21,16 @@ pub fn load(rel: &str, w: u32, h: u32) -> scene::Scene {
     s
 }
 
+/// Loads the scene at `rel` with its film divided by `scale` in both axes.
+pub fn load_scaled(rel: &str, scale: u32) -> scene::Scene {
+    let mut s = scene::load_file(&root().join(rel))
+        .expect("scene loads")
+        .scene;
+    s.film.width /= scale;
+    s.film.height /= scale;
+    s
+}
+
 /// Renders `scene` with `estimator`, `spp`, `seed` (and `max_depth` if given).
 pub fn render(
     s: &scene::Scene,
