@@ -71,10 +71,98 @@ pub enum Advance {
     Finished,
 }
 
+/// The jobs one coordinator process is advancing, each with a flag "asked again meanwhile".
+///
+/// A barrier or an assembly is CPU work of a fraction of a second to seconds; without this,
+/// the reaper's pass and the upload that completed a phase (or two uploads) would both do it
+/// at once, the loser's work thrown away by the conditional update — on a farm whose
+/// coordinator shares cores with workers that is CPU taken from rendering. A second caller
+/// in the same process therefore only raises the flag and returns; the caller doing the
+/// work looks again before it lets go, so no request to advance is lost. Correctness never
+/// depends on it (coordinators on one PostgreSQL still race safely, as documented above),
+/// and it holds nothing a restart would need.
+#[derive(Debug, Default)]
+pub struct Advancing(std::sync::Mutex<std::collections::HashMap<i64, bool>>);
+
+impl Advancing {
+    fn lock(&self) -> std::sync::MutexGuard<'_, std::collections::HashMap<i64, bool>> {
+        // The map is consistent after every statement: a poisoned lock is still usable.
+        self.0
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// Claims `job_id`; `None` (and the flag raised) when this process is advancing it.
+    fn claim(&self, job_id: i64) -> Option<AdvanceClaim<'_>> {
+        let mut m = self.lock();
+        if let Some(again) = m.get_mut(&job_id) {
+            *again = true;
+            return None;
+        }
+        m.insert(job_id, false);
+        Some(AdvanceClaim {
+            set: self,
+            job_id,
+            held: true,
+        })
+    }
+}
+
+/// A claim of [`Advancing`]; released by [`AdvanceClaim::release`] or when dropped (on
+/// error or cancellation).
+struct AdvanceClaim<'a> {
+    set: &'a Advancing,
+    job_id: i64,
+    held: bool,
+}
+
+impl AdvanceClaim<'_> {
+    /// Releases the claim unless somebody asked to advance the job meanwhile; then clears
+    /// the flag, keeps the claim and returns `false` (the caller looks again). Check and
+    /// release happen under one lock, so no request falls between them.
+    fn release(&mut self) -> bool {
+        let mut m = self.set.lock();
+        if let Some(again) = m.get_mut(&self.job_id)
+            && std::mem::take(again)
+        {
+            return false;
+        }
+        m.remove(&self.job_id);
+        self.held = false;
+        true
+    }
+}
+
+impl Drop for AdvanceClaim<'_> {
+    fn drop(&mut self) {
+        if self.held {
+            self.set.lock().remove(&self.job_id);
+        }
+    }
+}
+
 /// Advances `job_id` if it is running and its active phase is complete: runs the phase
-/// barrier, or finishes the job after its last phase.
+/// barrier, or finishes the job after its last phase. When this process is already
+/// advancing the job, returns [`Advance::Nothing`] at once and the running call looks
+/// again when it is done ([`Advancing`]).
 #[tracing::instrument(skip_all, fields(job = job_id))]
 pub async fn advance_job(state: &AppState, job_id: i64) -> Result<Advance, FinishError> {
+    let Some(mut claim) = state.advancing.claim(job_id) else {
+        return Ok(Advance::Nothing);
+    };
+    let mut outcome = Advance::Nothing;
+    loop {
+        let step = advance_once(state, job_id).await?;
+        if outcome == Advance::Nothing {
+            outcome = step;
+        }
+        if claim.release() {
+            return Ok(outcome);
+        }
+    }
+}
+
+async fn advance_once(state: &AppState, job_id: i64) -> Result<Advance, FinishError> {
     let store = &state.store;
     let Some(job) = store.job(job_id).await? else {
         return Ok(Advance::Nothing);
@@ -461,4 +549,26 @@ pub fn encode_exr(img: &protocol::assemble::AssembledImage) -> Result<Vec<u8>, F
     });
     imageio::encode_exr(img.width, img.height, &layers)
         .map_err(|e| FinishError::Image(e.to_string()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Advancing;
+
+    #[test]
+    fn a_second_caller_is_turned_away_and_its_request_kept() {
+        let set = Advancing::default();
+        let mut first = set.claim(7).expect("free job");
+        assert!(set.claim(7).is_none(), "claimed twice");
+        // Another job is independent.
+        assert!(set.claim(8).is_some());
+        // The turned-away request makes the holder look again instead of letting go…
+        assert!(!first.release());
+        // …once: with nobody asking, it lets go.
+        assert!(first.release());
+        drop(first);
+        let again = set.claim(7).expect("released");
+        drop(again);
+        assert!(set.claim(7).is_some(), "a dropped claim is released");
+    }
 }

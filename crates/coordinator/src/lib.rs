@@ -54,6 +54,10 @@ pub struct AppState {
     /// Turns `true` when [`App::run`]'s shutdown future resolves, so endless responses
     /// (the `/v1/events` stream) end and graceful shutdown can drain.
     pub stopping: tokio::sync::watch::Sender<bool>,
+    /// Jobs this process is advancing right now ([`finish::advance_job`]); see
+    /// [`finish::Advancing`]. Not state: a hint that keeps the reaper and an upload of one
+    /// process from running the same barrier or assembly side by side.
+    pub advancing: finish::Advancing,
 }
 
 /// A built coordinator, ready to serve.
@@ -100,6 +104,7 @@ impl App {
                 store,
                 work_available: Notify::new(),
                 stopping: tokio::sync::watch::Sender::new(false),
+                advancing: finish::Advancing::default(),
             }),
         })
     }
