@@ -103,17 +103,114 @@ pub fn atrous(
     }
     let inv_sa2 = (options.sigma_albedo > 0.0).then(|| 1.0 / (options.sigma_albedo.powi(2)));
     let inv_sn = (options.sigma_normal > 0.0).then(|| 1.0 / options.sigma_normal);
+    let ctx = Level {
+        albedo,
+        normal,
+        inv_sa2,
+        inv_sn,
+        sigma_color: options.sigma_color.max(0.0),
+        width,
+        height,
+    };
+    // Rows are independent within a level: bands of rows are filtered on all cores, each
+    // pixel with the same arithmetic in the same order, so the bits do not depend on the
+    // thread count.
+    let threads = if n >= PARALLEL_MIN_PIXELS {
+        std::thread::available_parallelism().map_or(1, |t| t.get())
+    } else {
+        1
+    };
+    Ok(filter_levels(
+        color,
+        variance,
+        &ctx,
+        options.iterations,
+        threads,
+    ))
+}
+
+/// The à-trous levels on `threads` threads (bands of rows); the result does not depend on
+/// `threads`.
+fn filter_levels(
+    color: &[f32],
+    variance: &[f32],
+    ctx: &Level<'_>,
+    iterations: u32,
+    threads: usize,
+) -> Vec<f32> {
+    let (width, height) = (ctx.width, ctx.height);
+    let n = width * height;
     let mut cur = color.to_vec();
     let mut var = variance.to_vec();
     let mut next = vec![0.0f32; 3 * n];
     let mut next_var = vec![0.0f32; n];
-    for it in 0..options.iterations.min(16) {
+    if n == 0 {
+        return cur;
+    }
+    let rows_per_band = height.div_ceil(threads.max(1)).max(1);
+    for it in 0..iterations.min(16) {
         let step = 1usize << it;
-        for y in 0..height {
+        let (cur_ref, var_ref) = (&cur, &var);
+        let bands = next
+            .chunks_mut(3 * width * rows_per_band)
+            .zip(next_var.chunks_mut(width * rows_per_band))
+            .enumerate();
+        if threads > 1 {
+            std::thread::scope(|s| {
+                for (b, (out, out_var)) in bands {
+                    s.spawn(move || {
+                        ctx.filter_rows(b * rows_per_band, step, cur_ref, var_ref, out, out_var)
+                    });
+                }
+            });
+        } else {
+            for (b, (out, out_var)) in bands {
+                ctx.filter_rows(b * rows_per_band, step, cur_ref, var_ref, out, out_var);
+            }
+        }
+        std::mem::swap(&mut cur, &mut next);
+        std::mem::swap(&mut var, &mut next_var);
+    }
+    cur
+}
+
+/// Images of at least this many pixels are filtered on several threads.
+const PARALLEL_MIN_PIXELS: usize = 1 << 14;
+
+/// What one à-trous level needs besides the current colour and variance.
+struct Level<'a> {
+    albedo: Option<&'a [f32]>,
+    normal: Option<&'a [f32]>,
+    inv_sa2: Option<f32>,
+    inv_sn: Option<f32>,
+    sigma_color: f32,
+    width: usize,
+    height: usize,
+}
+
+impl Level<'_> {
+    /// Filters rows `y0..` (as many as `out_var` holds) of one level with kernel spacing
+    /// `step` into `out` (RGB) and `out_var`.
+    fn filter_rows(
+        &self,
+        y0: usize,
+        step: usize,
+        cur: &[f32],
+        var: &[f32],
+        out: &mut [f32],
+        out_var: &mut [f32],
+    ) {
+        let (width, height) = (self.width, self.height);
+        for (r, (row, row_var)) in out
+            .chunks_mut(3 * width)
+            .zip(out_var.chunks_mut(width))
+            .enumerate()
+        {
+            let y = y0 + r;
             for x in 0..width {
                 let p = y * width + x;
                 let lp = (cur[3 * p] + cur[3 * p + 1] + cur[3 * p + 2]) / 3.0;
-                let denom = options.sigma_color.max(0.0) * var[p].sqrt() + 1e-4;
+                let denom = self.sigma_color * var[p].sqrt() + 1e-4;
                 let (mut ws, mut wv) = (0.0f32, 0.0f32);
                 let mut acc = [0.0f32; 3];
                 for (j, kj) in KERNEL.iter().enumerate() {
@@ -129,12 +226,12 @@ pub fn atrous(
                         let q = yy as usize * width + xx as usize;
                         let lq = (cur[3 * q] + cur[3 * q + 1] + cur[3 * q + 2]) / 3.0;
                         let mut e = (lp - lq).abs() / denom;
-                        if let (Some(a), Some(s)) = (albedo, inv_sa2) {
+                        if let (Some(a), Some(s)) = (self.albedo, self.inv_sa2) {
                             let d2: f32 =
                                 (0..3).map(|c| (a[3 * p + c] - a[3 * q + c]).powi(2)).sum();
                             e += d2 * s;
                         }
-                        if let (Some(nb), Some(s)) = (normal, inv_sn) {
+                        if let (Some(nb), Some(s)) = (self.normal, self.inv_sn) {
                             let dot: f32 = (0..3).map(|c| nb[3 * p + c] * nb[3 * q + c]).sum();
                             e += (1.0 - dot).max(0.0) * s;
                         }
@@ -151,15 +248,12 @@ pub fn atrous(
                 }
                 // The centre weight is 36/256 > 0, so `ws > 0`.
                 for c in 0..3 {
-                    next[3 * p + c] = acc[c] / ws;
+                    row[3 * x + c] = acc[c] / ws;
                 }
-                next_var[p] = wv / (ws * ws);
+                row_var[x] = wv / (ws * ws);
             }
         }
-        std::mem::swap(&mut cur, &mut next);
-        std::mem::swap(&mut var, &mut next_var);
     }
-    Ok(cur)
 }
 
 #[cfg(test)]
@@ -229,5 +323,47 @@ mod tests {
             let r = out[3 * (y * w + w / 2)];
             assert!((l - 0.2).abs() < 0.05 && (r - 0.8).abs() < 0.1, "{l} {r}");
         }
+    }
+
+    /// Bands of rows on several threads give the single thread's bits, for any band split
+    /// (including more threads than rows and a last band shorter than the others).
+    #[test]
+    fn thread_count_does_not_change_the_bits() {
+        let (w, h) = (23, 17);
+        let mut rng = 11u64;
+        let c: Vec<f32> = (0..3 * w * h).map(|_| lcg(&mut rng)).collect();
+        let v: Vec<f32> = (0..w * h).map(|_| 0.05 * lcg(&mut rng)).collect();
+        let a: Vec<f32> = (0..3 * w * h).map(|_| lcg(&mut rng)).collect();
+        let nrm: Vec<f32> = (0..3 * w * h)
+            .map(|i| if i % 3 == 2 { 1.0 } else { 0.0 })
+            .collect();
+        let ctx = Level {
+            albedo: Some(&a),
+            normal: Some(&nrm),
+            inv_sa2: Some(1.0 / 0.1f32.powi(2)),
+            inv_sn: Some(1.0 / 0.1f32),
+            sigma_color: 4.0,
+            width: w,
+            height: h,
+        };
+        let bits = |t: usize| -> Vec<u32> {
+            filter_levels(&c, &v, &ctx, 5, t)
+                .iter()
+                .map(|x| x.to_bits())
+                .collect()
+        };
+        let one = bits(1);
+        for t in [2, 3, 5, 40] {
+            assert!(bits(t) == one, "{t} threads changed the bits");
+        }
+        // And `atrous` itself (whatever thread count it picks) agrees.
+        let opts = AtrousOptions::default();
+        let out = atrous(&c, &v, Some(&a), Some(&nrm), w, h, &opts).unwrap();
+        assert!(out.iter().map(|x| x.to_bits()).eq(one));
+        assert!(
+            atrous(&[], &[], None, None, 0, 4, &opts)
+                .unwrap()
+                .is_empty()
+        );
     }
 }
