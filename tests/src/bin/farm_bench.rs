@@ -150,7 +150,17 @@ fn overhead(backend: Backend, estimator: &str, scene_name: &str, res: u32, spp: 
     let scene_bytes = serde_json::to_vec(&scene).expect("scene bytes");
     let testfarm = Farm::start(backend);
     let client = &testfarm.client;
-    let ws = start_workers(&testfarm.url(), 2);
+    let (n_workers, slots) = (arg("--workers", 2), arg("--slots", 1));
+    let ws = (0..n_workers)
+        .map(|i| {
+            let mut cfg = worker::WorkerConfig::new(testfarm.url(), ENROLL_TOKEN);
+            cfg.name = format!("w{i}");
+            cfg.slots = slots;
+            cfg.poll_wait_ms = 1_000;
+            cfg.max_backoff_ms = 500;
+            e2e::Worker::start_with(cfg)
+        })
+        .collect::<Vec<_>>();
     std::thread::sleep(Duration::from_millis(300)); // workers registered and polling
     let (mut local, mut farm, mut tasks) = (f64::INFINITY, f64::INFINITY, 0);
     let (mut local_cpu, mut farm_cpu) = (f64::INFINITY, f64::INFINITY);
@@ -240,7 +250,7 @@ fn overhead(backend: Backend, estimator: &str, scene_name: &str, res: u32, spp: 
     stop_workers(ws);
     println!(
         "overhead [{backend:?}]: {estimator}, {scene_name} {res}x{res} {spp} spp, tiles of {tile}, {tasks} tasks, best of {repeats}: \
-         in-process 2 threads {local:.3} s ({local_phases}), farm 2 workers x 1 slot {farm:.3} s (submit to done; {phases}) => overhead {:+.1} %; \
+         in-process 2 threads {local:.3} s ({local_phases}), farm {n_workers} workers x {slots} slots {farm:.3} s (submit to done; {phases}) => overhead {:+.1} %; \
          CPU seconds (whole process, best of {repeats}): in-process {local_cpu:.2}, farm {farm_cpu:.2} ({:+.1} %)",
         (farm / local - 1.0) * 100.0,
         (farm_cpu / local_cpu - 1.0) * 100.0
