@@ -71,7 +71,8 @@
 //! `[0, s)`, `[s, s+T)`, `[s+T, spp)` of the job's sampler, all kept in the image.
 //! Training tiles are fixed ([`TRAIN_TILE`] pixels, independent of
 //! [`RenderOptions::tile_size`]) and their cell accumulators are merged in row-major tile
-//! order; every pixel sums its samples in index order; so the same job and seed give
+//! order (a tile's own table: its bands' cells merged in band order, [`BAND_ROWS`]); every
+//! pixel sums its samples in index order; so the same job and seed give
 //! bitwise-identical images for any thread count and tile size.
 //!
 //! # Grid
@@ -1012,7 +1013,7 @@ impl<'a> CvJob<'a> {
 
     /// Renders `samples` of `tile` without CV (surrogate phase).
     pub fn surrogate_tile(&self, tile: TileRect, samples: Range<u32>) -> TileFilm {
-        let t = run_tile(&self.ctx, tile, samples, PhaseKind::Plain, None, None);
+        let t = Banded::run(&self.ctx, tile, samples, PhaseKind::Plain, None, None);
         TileFilm {
             film: t.film,
             rays: t.rays,
@@ -1035,27 +1036,20 @@ impl<'a> CvJob<'a> {
                 reason: "surrogate image size does not match the film",
             });
         }
-        let t = run_tile(&self.ctx, tile, samples, PhaseKind::Train, None, surrogate);
-        let cells = match self.ctx.kind {
-            Kind::PerLight => {
-                let mut m = BTreeMap::new();
-                for (k, a) in t.cells.cells {
-                    if let CellAcc::Mean(a) = a {
-                        m.insert(u64::from(k), a);
-                    }
-                }
-                AccumulatorTable::Mean(m)
-            }
-            _ => {
-                let mut m = BTreeMap::new();
-                for (k, a) in t.cells.cells {
-                    if let CellAcc::Moments(a) = a {
-                        m.insert(u64::from(k), a);
-                    }
-                }
-                AccumulatorTable::Moments(m)
-            }
-        };
+        let t = Banded::run(&self.ctx, tile, samples, PhaseKind::Train, None, surrogate);
+        // Each band's cells, merged in band order (see [`BAND_ROWS`]).
+        let mut bands = t.cells.into_iter().map(|b| band_table(self.ctx.kind, b));
+        let mut cells = bands
+            .next()
+            .unwrap_or_else(|| band_table(self.ctx.kind, TileCells::default()));
+        for table in bands {
+            cells
+                .merge(&table)
+                .map_err(|_| RenderError::InvalidSetting {
+                    field: "estimator",
+                    reason: "training accumulators of different layouts",
+                })?;
+        }
         Ok(TrainTile {
             out: TileFilm {
                 film: t.film,
@@ -1113,7 +1107,7 @@ impl<'a> CvJob<'a> {
         samples: Range<u32>,
         table: &CoefficientTable,
     ) -> RenderTile {
-        let t = run_tile(
+        let t = Banded::run(
             &self.ctx,
             tile,
             samples,
@@ -1152,6 +1146,94 @@ pub fn film_moments(film: &Film) -> Vec<PixelMoments> {
             count: p.count,
         })
         .collect()
+}
+
+/// Rows of the bands a tile of any phase is rendered in: the bands of a tile run in
+/// parallel (rayon, in whatever pool is current: the in-process driver's, a farm worker's
+/// global one) and are joined in band order. Fixed — never derived from a thread count — so
+/// a training tile's table (each band's cells, merged in band order) has the same bits for
+/// any thread count, in-process and on every worker; the pixels do not depend on the bands
+/// at all (each pixel sums its own samples in index order). A worker renders a 128-pixel
+/// training tile on all its cores, which keeps the few large tasks of a training phase from
+/// leaving cores idle before the barrier.
+pub const BAND_ROWS: u32 = 16;
+
+/// A tile's outputs joined from its bands (row-major over the tile, like [`TileOut`]), with
+/// each band's cells in band order.
+struct Banded {
+    film: Film,
+    rays: u64,
+    cells: Vec<TileCells>,
+    cv_sum: Vec<[f64; 3]>,
+    cell_id: Vec<f32>,
+}
+
+impl Banded {
+    /// Renders `tile` as bands of [`BAND_ROWS`] full-width rows in parallel.
+    fn run(
+        ctx: &CvContext<'_>,
+        tile: TileRect,
+        samples: Range<u32>,
+        kind: PhaseKind,
+        table: Option<&CoefficientTable>,
+        surrogate: Option<&[f64]>,
+    ) -> Self {
+        let bands: Vec<TileRect> = (0..tile.height.div_ceil(BAND_ROWS))
+            .map(|b| TileRect {
+                x0: tile.x0,
+                y0: tile.y0 + b * BAND_ROWS,
+                width: tile.width,
+                height: BAND_ROWS.min(tile.height - b * BAND_ROWS),
+            })
+            .collect();
+        let outs: Vec<TileOut> = bands
+            .par_iter()
+            .map(|&b| run_tile(ctx, b, samples.clone(), kind, table, surrogate))
+            .collect();
+        // Full-width bands of a row-major tile: the tile's arrays are the bands' arrays
+        // one after the other.
+        let mut joined = Banded {
+            film: Film::new_rect(tile.x0, tile.y0, tile.width, tile.height),
+            rays: 0,
+            cells: Vec::with_capacity(outs.len()),
+            cv_sum: Vec::new(),
+            cell_id: Vec::new(),
+        };
+        joined.film.pixels.clear();
+        for o in outs {
+            joined.film.pixels.extend_from_slice(&o.film.pixels);
+            joined.film.rejected += o.film.rejected;
+            joined.rays += o.rays;
+            joined.cells.push(o.cells);
+            joined.cv_sum.extend_from_slice(&o.cv_sum);
+            joined.cell_id.extend_from_slice(&o.cell_id);
+        }
+        joined
+    }
+}
+
+/// A band's training cells as a table keyed by cell.
+fn band_table(kind: Kind, band: TileCells) -> AccumulatorTable {
+    match kind {
+        Kind::PerLight => {
+            let mut m = BTreeMap::new();
+            for (k, a) in band.cells {
+                if let CellAcc::Mean(a) = a {
+                    m.insert(u64::from(k), a);
+                }
+            }
+            AccumulatorTable::Mean(m)
+        }
+        _ => {
+            let mut m = BTreeMap::new();
+            for (k, a) in band.cells {
+                if let CellAcc::Moments(a) = a {
+                    m.insert(u64::from(k), a);
+                }
+            }
+            AccumulatorTable::Moments(m)
+        }
+    }
 }
 
 /// What one tile of a phase produced (internal).
