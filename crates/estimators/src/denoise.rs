@@ -144,13 +144,19 @@ fn filter_levels(
     let mut var = variance.to_vec();
     let mut next = vec![0.0f32; 3 * n];
     let mut next_var = vec![0.0f32; n];
+    let mut lum = vec![0.0f32; n];
     if n == 0 {
         return cur;
     }
     let rows_per_band = height.div_ceil(threads.max(1)).max(1);
     for it in 0..iterations.min(16) {
         let step = 1usize << it;
+        // Channel means of this level, once per pixel rather than once per tap.
+        for (l, c) in lum.iter_mut().zip(cur.chunks_exact(3)) {
+            *l = (c[0] + c[1] + c[2]) / 3.0;
+        }
         let (cur_ref, var_ref) = (&cur, &var);
+        let lum_ref = &lum;
         let bands = next
             .chunks_mut(3 * width * rows_per_band)
             .zip(next_var.chunks_mut(width * rows_per_band))
@@ -159,13 +165,15 @@ fn filter_levels(
             std::thread::scope(|s| {
                 for (b, (out, out_var)) in bands {
                     s.spawn(move || {
-                        ctx.filter_rows(b * rows_per_band, step, cur_ref, var_ref, out, out_var)
+                        let y0 = b * rows_per_band;
+                        ctx.filter_rows(y0, step, cur_ref, lum_ref, var_ref, out, out_var)
                     });
                 }
             });
         } else {
             for (b, (out, out_var)) in bands {
-                ctx.filter_rows(b * rows_per_band, step, cur_ref, var_ref, out, out_var);
+                let y0 = b * rows_per_band;
+                ctx.filter_rows(y0, step, cur_ref, lum_ref, var_ref, out, out_var);
             }
         }
         std::mem::swap(&mut cur, &mut next);
@@ -190,12 +198,14 @@ struct Level<'a> {
 
 impl Level<'_> {
     /// Filters rows `y0..` (as many as `out_var` holds) of one level with kernel spacing
-    /// `step` into `out` (RGB) and `out_var`.
+    /// `step` into `out` (RGB) and `out_var`; `lum` holds the channel means of `cur`.
+    #[allow(clippy::too_many_arguments)]
     fn filter_rows(
         &self,
         y0: usize,
         step: usize,
         cur: &[f32],
+        lum: &[f32],
         var: &[f32],
         out: &mut [f32],
         out_var: &mut [f32],
@@ -209,8 +219,12 @@ impl Level<'_> {
             let y = y0 + r;
             for x in 0..width {
                 let p = y * width + x;
-                let lp = (cur[3 * p] + cur[3 * p + 1] + cur[3 * p + 2]) / 3.0;
+                let lp = lum[p];
                 let denom = self.sigma_color * var[p].sqrt() + 1e-4;
+                let ap = self.albedo.map(|a| [a[3 * p], a[3 * p + 1], a[3 * p + 2]]);
+                let np = self
+                    .normal
+                    .map(|nb| [nb[3 * p], nb[3 * p + 1], nb[3 * p + 2]]);
                 let (mut ws, mut wv) = (0.0f32, 0.0f32);
                 let mut acc = [0.0f32; 3];
                 for (j, kj) in KERNEL.iter().enumerate() {
@@ -224,15 +238,13 @@ impl Level<'_> {
                             continue;
                         }
                         let q = yy as usize * width + xx as usize;
-                        let lq = (cur[3 * q] + cur[3 * q + 1] + cur[3 * q + 2]) / 3.0;
-                        let mut e = (lp - lq).abs() / denom;
-                        if let (Some(a), Some(s)) = (self.albedo, self.inv_sa2) {
-                            let d2: f32 =
-                                (0..3).map(|c| (a[3 * p + c] - a[3 * q + c]).powi(2)).sum();
+                        let mut e = (lp - lum[q]).abs() / denom;
+                        if let (Some(a), Some(ap), Some(s)) = (self.albedo, ap, self.inv_sa2) {
+                            let d2: f32 = (0..3).map(|c| (ap[c] - a[3 * q + c]).powi(2)).sum();
                             e += d2 * s;
                         }
-                        if let (Some(nb), Some(s)) = (self.normal, self.inv_sn) {
-                            let dot: f32 = (0..3).map(|c| nb[3 * p + c] * nb[3 * q + c]).sum();
+                        if let (Some(nb), Some(np), Some(s)) = (self.normal, np, self.inv_sn) {
+                            let dot: f32 = (0..3).map(|c| np[c] * nb[3 * q + c]).sum();
                             e += (1.0 - dot).max(0.0) * s;
                         }
                         let w = kj * ki * (-e).exp();
