@@ -4,9 +4,11 @@
 //!    task and upload a valid (all-zero) frame as fast as they can; reports leases/s
 //!    (lease + upload round trips) and the finishing time (assembly of every block).
 //! 2. **Farm overhead** (`--only overhead [--estimator cms] [--scene many-lights] [--res 256]
-//!    [--spp 64] [--tile 32] [--repeats 3]`): the same job rendered in-process (what `cvfarm
-//!    render` does: `render_estimator_image` with 2 threads, EXR encoded) and by a farm of 2 real
-//!    workers × 1 slot on loopback; reports both wall times (best of each) and the overhead.
+//!    [--spp 64] [--tile 32] [--repeats 3] [--workers 2] [--slots 1] [--poll-ms MS]`): the
+//!    same job rendered in-process (what `cvfarm render` does: `render_estimator_image` with 2
+//!    threads, EXR encoded) and by a farm of `--workers` real workers × `--slots` slots on
+//!    loopback; reports both wall times (best of each) and the overhead. The job's status is
+//!    polled at a quarter of its ETA (5–100 ms) unless `--poll-ms` fixes the interval.
 //! 3. **Merge + solve throughput** (DESIGN §8, "coordinator merge/solve throughput"): the
 //!    coordinator's barrier work on realistic training accumulators. `--sim-workers` threads
 //!    each produce the tables of their share of `--tiles` tiles (`--cells` cells per tile,
@@ -209,13 +211,22 @@ fn overhead(backend: Backend, estimator: &str, scene_name: &str, res: u32, spp: 
 
         let (t0, c0) = (Instant::now(), cpu_time::cpu_seconds());
         let id = client.submit(&spec);
-        // Poll often: the 50 ms of `Client::wait` would be a visible share of a short job.
+        // Polling is not free: at a fixed 5 ms (200 status requests/s, each a few queries on
+        // the coordinator sharing the 2 cores) it cost the farm 5-8 % more CPU than polling
+        // at 100 ms. So poll at a quarter of the job's ETA, between 5 ms (the end of the job
+        // is seen within 5 ms) and 100 ms (`--poll-ms` fixes the interval instead).
+        let fixed = arg("--poll-ms", 0) as u64;
         let st = loop {
             let s = client.status(id);
             if !matches!(s.state, JobState::Running | JobState::Paused) {
                 break s;
             }
-            std::thread::sleep(Duration::from_millis(5));
+            let ms = match (fixed, s.eta_s) {
+                (0, Some(eta)) => (eta * 250.0).clamp(5.0, 100.0) as u64,
+                (0, None) => 20,
+                (f, _) => f,
+            };
+            std::thread::sleep(Duration::from_millis(ms));
         };
         let t = t0.elapsed().as_secs_f64();
         // The coordinator and both workers run in this process: its CPU time is the farm's.
