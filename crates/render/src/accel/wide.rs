@@ -51,6 +51,9 @@ const TAG_SHIFT: u32 = 30;
 const TAG_INNER: u32 = 0;
 const TAG_PACKET: u32 = 1;
 const TAG_SPHERE: u32 = 2;
+/// An inner node whose children are all leaves (packets or spheres): traversal handles its
+/// children in place, nearest first, without pushing them (see [`WideBvh::intersect`]).
+const TAG_LEAVES: u32 = 3;
 const INDEX_MASK: u32 = (1 << TAG_SHIFT) - 1;
 const EMPTY: u32 = u32::MAX;
 
@@ -223,10 +226,12 @@ impl WideBvh {
             child: [EMPTY; LANES],
         });
         let mut need = 0;
+        let mut leaves_only = true;
         for (lane, &(s, e)) in clusters.iter().enumerate() {
             let (lo, hi) = bounds(&items[s..e]);
             let (child, child_need) = self.build(prims, &mut items[s..e], depth + 1);
             need = need.max(child_need);
+            leaves_only &= matches!(child >> TAG_SHIFT, TAG_PACKET | TAG_SPHERE);
             let node = &mut self.nodes[index];
             for axis in 0..3 {
                 node.min[axis].0[lane] = lo[axis];
@@ -234,10 +239,10 @@ impl WideBvh {
             }
             node.child[lane] = child;
         }
-        (
-            (TAG_INNER << TAG_SHIFT) | index as u32,
-            clusters.len() - 1 + need,
-        )
+        let tag = if leaves_only { TAG_LEAVES } else { TAG_INNER };
+        // (The bound is kept for `TAG_LEAVES` nodes too, which push nothing: an overestimate,
+        // so the choice between this BVH and the CWBVH stays what it was.)
+        ((tag << TAG_SHIFT) | index as u32, clusters.len() - 1 + need)
     }
 
     /// A leaf for a leafable cluster.
@@ -304,22 +309,64 @@ impl WideBvh {
                         sp += 1;
                     }
                 }
-                TAG_PACKET => {
-                    if let Some(h) = packet_closest(&self.packets[index], ray, best_t) {
-                        best_t = h.1;
-                        best = Some(h);
+                TAG_LEAVES => {
+                    // The children are leaves: the stack path would push them sorted and pop
+                    // them at once, nearest first (equal entry distances: higher lane first),
+                    // skipping those entered beyond the closest hit so far. Same order and
+                    // same skips here, without the stack.
+                    let node = &self.nodes[index];
+                    let (mut mask, t_in) = boxes.test(node, best_t);
+                    while mask != 0 {
+                        let lane = nearest_lane(&t_in, mask);
+                        if t_in[lane] > best_t {
+                            break;
+                        }
+                        mask &= !(1 << lane);
+                        self.leaf_closest(prims, node.child[lane], ray, &mut best_t, &mut best);
                     }
                 }
-                _ => {
-                    let p = &prims[index];
-                    if let Some(t) = intersect_sphere(p.a, p.b.x, ray.o, ray.d, best_t) {
-                        best_t = t;
-                        best = Some((index as u32, t, 0.0, 0.0));
-                    }
-                }
+                _ => self.leaf_closest(prims, r, ray, &mut best_t, &mut best),
             }
         }
         best
+    }
+
+    /// The closest-hit test of leaf `r` (a packet or sphere reference): updates `best_t` and
+    /// `best` when it has a hit nearer than `best_t`.
+    #[inline(always)]
+    fn leaf_closest(
+        &self,
+        prims: &[Prim],
+        r: u32,
+        ray: &RayShear,
+        best_t: &mut f32,
+        best: &mut Option<WideHit>,
+    ) {
+        let index = (r & INDEX_MASK) as usize;
+        if r >> TAG_SHIFT == TAG_PACKET {
+            if let Some(h) = packet_closest(&self.packets[index], ray, *best_t) {
+                *best_t = h.1;
+                *best = Some(h);
+            }
+        } else {
+            let p = &prims[index];
+            if let Some(t) = intersect_sphere(p.a, p.b.x, ray.o, ray.d, *best_t) {
+                *best_t = t;
+                *best = Some((index as u32, t, 0.0, 0.0));
+            }
+        }
+    }
+
+    /// The any-hit test of leaf `r` (a packet or sphere reference).
+    #[inline(always)]
+    fn leaf_any(&self, prims: &[Prim], r: u32, ray: &RayShear, t_max: f32) -> bool {
+        let index = (r & INDEX_MASK) as usize;
+        if r >> TAG_SHIFT == TAG_PACKET {
+            packet_any(&self.packets[index], ray, t_max)
+        } else {
+            let p = &prims[index];
+            intersect_sphere(p.a, p.b.x, ray.o, ray.d, t_max).is_some()
+        }
     }
 
     /// Whether anything is hit with `t ∈ (0, t_max)`.
@@ -346,14 +393,21 @@ impl WideBvh {
                         sp += 1;
                     }
                 }
-                TAG_PACKET => {
-                    if packet_any(&self.packets[index], ray, t_max) {
-                        return true;
+                TAG_LEAVES => {
+                    // Leaf children tested in place, in the order the stack would pop them
+                    // (highest lane first).
+                    let node = &self.nodes[index];
+                    let (mut mask, _) = boxes.test(node, t_max);
+                    while mask != 0 {
+                        let lane = 31 - mask.leading_zeros() as usize;
+                        mask &= !(1 << lane);
+                        if self.leaf_any(prims, node.child[lane], ray, t_max) {
+                            return true;
+                        }
                     }
                 }
                 _ => {
-                    let p = &prims[index];
-                    if intersect_sphere(p.a, p.b.x, ray.o, ray.d, t_max).is_some() {
+                    if self.leaf_any(prims, r, ray, t_max) {
                         return true;
                     }
                 }
@@ -512,6 +566,36 @@ impl BoxRay {
     }
 }
 
+/// The lane of `mask` (non-zero) with the smallest `t_in`; among equal ones the highest lane
+/// (the order in which the traversal stack pops children pushed in lane order). AVX2 when the
+/// build target has it, else [`nearest_lane_portable`].
+#[inline(always)]
+fn nearest_lane(t_in: &[f32; LANES], mask: u32) -> usize {
+    #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+    {
+        avx2::nearest_lane(t_in, mask)
+    }
+    #[cfg(not(all(target_arch = "x86_64", target_feature = "avx2")))]
+    {
+        nearest_lane_portable(t_in, mask)
+    }
+}
+
+/// [`nearest_lane`] as a lane loop.
+#[cfg_attr(all(target_arch = "x86_64", target_feature = "avx2"), allow(dead_code))]
+#[inline(always)]
+fn nearest_lane_portable(t_in: &[f32; LANES], mask: u32) -> usize {
+    let mut lane = 0;
+    let mut t = f32::INFINITY;
+    let mut found = false;
+    for (l, &tl) in t_in.iter().enumerate() {
+        if mask >> l & 1 != 0 && (!found || tl <= t) {
+            (lane, t, found) = (l, tl, true);
+        }
+    }
+    lane
+}
+
 /// Result of a packet test: mask of lanes hit with `t ∈ (0, t_max)`, then `t`, `b1`, `b2` per
 /// lane (meaningful in the masked lanes only).
 type PacketHits = (u32, [f32; LANES], [f32; LANES], [f32; LANES]);
@@ -638,6 +722,29 @@ mod avx2 {
         // SAFETY: as in `load`.
         unsafe { _mm256_store_ps(out.0.as_mut_ptr(), v) };
         out.0
+    }
+
+    /// [`super::nearest_lane`]: the masked lanes' minimum by three lane-swapping `min`s, then
+    /// the highest masked lane equal to it. Entry distances are never NaN (`maxps` with the
+    /// initial 0 keeps the non-NaN operand), so the minimum equals one of the masked lanes.
+    #[inline(always)]
+    pub(super) fn nearest_lane(t_in: &[f32; LANES], mask: u32) -> usize {
+        // SAFETY: AVX2 is enabled for the whole build (cfg): the intrinsics are available.
+        unsafe {
+            let bits = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
+            let live =
+                _mm256_cmpeq_epi32(_mm256_and_si256(_mm256_set1_epi32(mask as i32), bits), bits);
+            let t = _mm256_blendv_ps(
+                _mm256_set1_ps(f32::INFINITY),
+                _mm256_loadu_ps(t_in.as_ptr()),
+                _mm256_castsi256_ps(live),
+            );
+            let m = _mm256_min_ps(t, _mm256_permute2f128_ps::<1>(t, t));
+            let m = _mm256_min_ps(m, _mm256_permute_ps::<0b01_00_11_10>(m));
+            let m = _mm256_min_ps(m, _mm256_permute_ps::<0b10_11_00_01>(m));
+            let eq = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_EQ_OQ>(t, m)) as u32 & mask;
+            31 - eq.leading_zeros() as usize
+        }
     }
 
     #[inline(always)]
