@@ -566,9 +566,10 @@ impl RayShear {
         // Branch-free choice of the dominant axis (random directions defeat prediction):
         // x if it beats y and z, else y if it beats z, else z.
         let x_beats_y = a.x > a.y;
-        let x_max = x_beats_y && a.x > a.z;
-        let y_max = !x_beats_y && a.y > a.z;
-        let kz = usize::from(y_max) + 2 * usize::from(!x_max && !y_max);
+        // (`&` rather than `&&`: with `&&` the compiler emitted branches.)
+        let x_max = x_beats_y & (a.x > a.z);
+        let y_max = !x_beats_y & (a.y > a.z);
+        let kz = usize::from(y_max) + 2 * usize::from(!x_max & !y_max);
         let kx = NEXT[kz];
         let ky = NEXT[kx];
         let dv = d.to_array();
