@@ -42,7 +42,7 @@ pub mod microfacet;
 pub mod rough_conductor;
 pub mod rough_plastic;
 
-use glam::{Vec2, Vec3};
+use glam::{Vec2, Vec3, Vec4};
 use microfacet::Microfacet;
 pub use rough_plastic::RoughPlasticParams;
 
@@ -214,10 +214,30 @@ impl Bsdf {
 
     /// Sample `wi` given `wo`; `u_lobe` picks the lobe, `u` the direction within it (both uniform
     /// in [0, 1)). `None` for a failed sample (wrong side, direction below the surface, pdf 0).
-    #[inline]
+    ///
+    /// The diffuse lobe (the most common, and the cheapest) is sampled inline; the others in
+    /// an out-of-line call, which keeps this function small enough to inline into the path
+    /// loop (no call, no `Option<BsdfSample>` through memory for the diffuse case).
+    #[inline(always)]
     pub fn sample(&self, wo: Vec3, u_lobe: f32, u: Vec2) -> Option<BsdfSample> {
         let (wo, _, flipped) = self.orient(wo, Vec3::Z);
         let mut s = match &self.kind {
+            BsdfKind::Diffuse { reflectance } => diffuse::sample(*reflectance, wo, u),
+            _ => self.sample_non_diffuse(wo, u_lobe, u),
+        }?;
+        if !valid_sample(s.weight, s.pdf) {
+            return None;
+        }
+        if flipped {
+            s.wi.z = -s.wi.z;
+        }
+        Some(s)
+    }
+
+    /// The lobe samples of [`Self::sample`] other than diffuse (`wo` already oriented).
+    #[inline(never)]
+    fn sample_non_diffuse(&self, wo: Vec3, u_lobe: f32, u: Vec2) -> Option<BsdfSample> {
+        match &self.kind {
             BsdfKind::Diffuse { reflectance } => diffuse::sample(*reflectance, wo, u),
             BsdfKind::Conductor {
                 eta,
@@ -246,14 +266,7 @@ impl Bsdf {
                 u_lobe,
                 u,
             ),
-        }?;
-        if !(s.weight.is_finite() && s.pdf.is_finite() && s.pdf > 0.0) {
-            return None;
         }
-        if flipped {
-            s.wi.z = -s.wi.z;
-        }
-        Some(s)
     }
 
     /// Whether every lobe is a Dirac delta (no MIS with light sampling possible).
@@ -282,6 +295,18 @@ impl Bsdf {
             } => *diffuse_reflectance,
         }
     }
+}
+
+/// Whether a sample's weight and pdf are finite and the pdf positive (what
+/// [`Bsdf::sample`] requires), with one vector comparison: `|x| < ∞` is exactly
+/// `x.is_finite()` (false for ±∞ and NaN).
+#[inline(always)]
+fn valid_sample(weight: Vec3, pdf: f32) -> bool {
+    Vec4::new(weight.x, weight.y, weight.z, pdf)
+        .abs()
+        .cmplt(Vec4::splat(f32::INFINITY))
+        .all()
+        && pdf > 0.0
 }
 
 /// One material, with colours still unevaluated and per-material precomputations done.
