@@ -176,9 +176,10 @@ pub fn trace<O: VertexObserver>(
             && let Some(mut ls) = lights.sample_light(sel_light, h.p, u_light)
             && {
                 ls.pdf *= sel_pmf;
-                ls.pdf > 0.0
+                // `pdf > 0 && pdf.is_finite()` as two comparisons (that form compiled to a
+                // ~20-instruction floating-point class test).
+                (ls.pdf > 0.0) & (ls.pdf < f32::INFINITY)
             }
-            && ls.pdf.is_finite()
         {
             let wi_local = frame.to_local(ls.wi);
             let (f, pdf_bsdf) = bsdf.eval_pdf(wo, wi_local);
