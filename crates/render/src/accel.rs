@@ -445,6 +445,7 @@ impl Accel {
     }
 
     /// Surface attributes of a raw hit.
+    #[inline(always)]
     fn finish_hit(&self, ray: &Ray, t: f32, raw: RawHit) -> Hit {
         let prim = &self.prims[raw.prim as usize];
         if prim.shape & SPHERE_BIT != 0 {
