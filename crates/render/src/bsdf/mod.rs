@@ -450,8 +450,32 @@ impl MaterialTable {
 
     /// The BSDF of material `id` at texture coordinates `uv`. An out-of-range id (which a
     /// validated scene never contains) gives Mitsuba's default material, grey diffuse 0.5.
-    #[inline]
+    ///
+    /// A diffuse material with a constant colour (the common case) is built inline; every
+    /// other one in an out-of-line call, which keeps this function small enough to inline
+    /// into the path loop.
+    #[inline(always)]
     pub fn bsdf(&self, id: scene::MaterialId, uv: Vec2) -> Bsdf {
+        if let Some((
+            Entry::Diffuse {
+                reflectance: scene::Color::Rgb(reflectance),
+            },
+            two_sided,
+        )) = self.entries.get(id as usize)
+        {
+            return Bsdf {
+                kind: BsdfKind::Diffuse {
+                    reflectance: *reflectance,
+                },
+                two_sided: *two_sided,
+            };
+        }
+        self.bsdf_general(id, uv)
+    }
+
+    /// [`Self::bsdf`] for every material.
+    #[inline(never)]
+    fn bsdf_general(&self, id: scene::MaterialId, uv: Vec2) -> Bsdf {
         let Some((entry, two_sided)) = self.entries.get(id as usize) else {
             return Bsdf::new(BsdfKind::Diffuse {
                 reflectance: Vec3::splat(0.5),
