@@ -184,9 +184,22 @@ impl Bsdf {
 
     /// `(eval(wo, wi), pdf(wo, wi))` in one call, sharing the microfacet terms (what an
     /// integrator wants for MIS after light sampling).
-    #[inline]
+    ///
+    /// As in [`Self::sample`], the diffuse lobe is evaluated inline and the others out of line.
+    #[inline(always)]
     pub fn eval_pdf(&self, wo: Vec3, wi: Vec3) -> (Vec3, f32) {
         let (wo, wi, _) = self.orient(wo, wi);
+        match &self.kind {
+            BsdfKind::Diffuse { reflectance } => {
+                (diffuse::eval(*reflectance, wo, wi), diffuse::pdf(wo, wi))
+            }
+            _ => self.eval_pdf_non_diffuse(wo, wi),
+        }
+    }
+
+    /// [`Self::eval_pdf`] of the lobes other than diffuse (directions already oriented).
+    #[inline(never)]
+    fn eval_pdf_non_diffuse(&self, wo: Vec3, wi: Vec3) -> (Vec3, f32) {
         match &self.kind {
             BsdfKind::Diffuse { reflectance } => {
                 (diffuse::eval(*reflectance, wo, wi), diffuse::pdf(wo, wi))
