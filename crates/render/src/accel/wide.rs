@@ -315,6 +315,13 @@ impl WideBvh {
             b1: 0.0,
             b2: 0.0,
         };
+        if self.root >> TAG_SHIFT == TAG_LEAVES {
+            // A one-node tree (scenes the build packs into one node's 8 leaves, e.g. the
+            // Cornell box): no stack at all.
+            let node = &self.nodes[(self.root & INDEX_MASK) as usize];
+            self.leaves_closest(prims, node, &boxes, ray, &mut best);
+            return best.hit();
+        }
         // Uninitialised: only entries below `sp` are read (zeroing 512 bytes per ray cost ~3 %
         // of all instructions).
         let mut stack = [std::mem::MaybeUninit::<(u32, f32)>::uninit(); STACK];
@@ -352,25 +359,36 @@ impl WideBvh {
                     }
                 }
                 TAG_LEAVES => {
-                    // The children are leaves: the stack path would push them sorted and pop
-                    // them at once, nearest first (equal entry distances: higher lane first),
-                    // skipping those entered beyond the closest hit so far. Same order and
-                    // same skips here, without the stack.
-                    let node = &self.nodes[index];
-                    let (mut mask, t_in) = boxes.test(node, best.t);
-                    while mask != 0 {
-                        let lane = nearest_lane(&t_in, mask);
-                        if t_in[lane] > best.t {
-                            break;
-                        }
-                        mask &= !(1 << lane);
-                        self.leaf_closest(prims, node.child[lane], ray, &mut best);
-                    }
+                    self.leaves_closest(prims, &self.nodes[index], &boxes, ray, &mut best);
                 }
                 _ => self.leaf_closest(prims, r, ray, &mut best),
             }
         }
         best.hit()
+    }
+
+    /// The closest-hit test of a [`TAG_LEAVES`] node's children. The stack path would push
+    /// them sorted and pop them at once, nearest first (equal entry distances: higher lane
+    /// first), skipping those entered beyond the closest hit so far. Same order and same skips
+    /// here, without the stack.
+    #[inline(always)]
+    fn leaves_closest(
+        &self,
+        prims: &[Prim],
+        node: &Node,
+        boxes: &BoxRay,
+        ray: &RayShear,
+        best: &mut Closest,
+    ) {
+        let (mut mask, t_in) = boxes.test(node, best.t);
+        while mask != 0 {
+            let lane = nearest_lane(&t_in, mask);
+            if t_in[lane] > best.t {
+                break;
+            }
+            mask &= !(1 << lane);
+            self.leaf_closest(prims, node.child[lane], ray, best);
+        }
     }
 
     /// The closest-hit test of leaf `r` (a packet or sphere reference): updates `best` when it
@@ -393,6 +411,28 @@ impl WideBvh {
         }
     }
 
+    /// The any-hit test of a [`TAG_LEAVES`] node's children, tested in place in the order the
+    /// stack would pop them (highest lane first).
+    #[inline(always)]
+    fn leaves_any(
+        &self,
+        prims: &[Prim],
+        node: &Node,
+        boxes: &BoxRay,
+        ray: &RayShear,
+        t_max: f32,
+    ) -> bool {
+        let (mut mask, _) = boxes.test(node, t_max);
+        while mask != 0 {
+            let lane = 31 - mask.leading_zeros() as usize;
+            mask &= !(1 << lane);
+            if self.leaf_any(prims, node.child[lane], ray, t_max) {
+                return true;
+            }
+        }
+        false
+    }
+
     /// The any-hit test of leaf `r` (a packet or sphere reference).
     #[inline(always)]
     fn leaf_any(&self, prims: &[Prim], r: u32, ray: &RayShear, t_max: f32) -> bool {
@@ -409,6 +449,11 @@ impl WideBvh {
     #[inline]
     pub(super) fn occluded(&self, prims: &[Prim], ray: &RayShear, t_max: f32) -> bool {
         let boxes = BoxRay::new(ray);
+        if self.root >> TAG_SHIFT == TAG_LEAVES {
+            // A one-node tree: no stack (as in `intersect`).
+            let node = &self.nodes[(self.root & INDEX_MASK) as usize];
+            return self.leaves_any(prims, node, &boxes, ray, t_max);
+        }
         let mut stack = [std::mem::MaybeUninit::<u32>::uninit(); STACK];
         stack[0].write(self.root);
         let mut sp = 1;
@@ -430,16 +475,8 @@ impl WideBvh {
                     }
                 }
                 TAG_LEAVES => {
-                    // Leaf children tested in place, in the order the stack would pop them
-                    // (highest lane first).
-                    let node = &self.nodes[index];
-                    let (mut mask, _) = boxes.test(node, t_max);
-                    while mask != 0 {
-                        let lane = 31 - mask.leading_zeros() as usize;
-                        mask &= !(1 << lane);
-                        if self.leaf_any(prims, node.child[lane], ray, t_max) {
-                            return true;
-                        }
+                    if self.leaves_any(prims, &self.nodes[index], &boxes, ray, t_max) {
+                        return true;
                     }
                 }
                 _ => {
