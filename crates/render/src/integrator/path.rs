@@ -79,6 +79,10 @@ pub fn vertex_dimension(depth: u32) -> u32 {
 /// escapes — then `out.radiance` already holds the env radiance (unless hidden) — else the
 /// hit, the ray that found it and the emission seen directly at the hit (no MIS: the
 /// camera is a delta "BSDF", Mitsuba's `prev_bsdf_delta = true`).
+///
+/// Always inlined: as a call, its `Option<(Hit, Ray, Vec3)>` went through memory and the
+/// caller reloaded and spilled its whole loop state around it once per path.
+#[inline(always)]
 pub(crate) fn camera_hit(
     rs: &RenderScene,
     st: &RenderSettings,
