@@ -445,6 +445,7 @@ impl Accel {
     }
 
     /// Surface attributes of a raw hit.
+    #[inline(always)]
     fn finish_hit(&self, ray: &Ray, t: f32, raw: RawHit) -> Hit {
         let prim = &self.prims[raw.prim as usize];
         if prim.shape & SPHERE_BIT != 0 {
@@ -566,9 +567,10 @@ impl RayShear {
         // Branch-free choice of the dominant axis (random directions defeat prediction):
         // x if it beats y and z, else y if it beats z, else z.
         let x_beats_y = a.x > a.y;
-        let x_max = x_beats_y && a.x > a.z;
-        let y_max = !x_beats_y && a.y > a.z;
-        let kz = usize::from(y_max) + 2 * usize::from(!x_max && !y_max);
+        // (`&` rather than `&&`: with `&&` the compiler emitted branches.)
+        let x_max = x_beats_y & (a.x > a.z);
+        let y_max = !x_beats_y & (a.y > a.z);
+        let kz = usize::from(y_max) + 2 * usize::from(!x_max & !y_max);
         let kx = NEXT[kz];
         let ky = NEXT[kx];
         let dv = d.to_array();

@@ -26,10 +26,13 @@ const SOBOL_DIMENSIONS: u32 = sobol_burley::NUM_DIMENSION_SETS_4D * 4;
 /// Sample indices covered by `sobol_burley` (2¹⁶).
 const SOBOL_MAX_SAMPLES: u32 = 1 << 16;
 
-/// Sobol direction vectors of two consecutive dimension sets: `[set][k]` is the contribution
-/// (bit-reversed, as `sobol_burley` stores it) of bit `31 − k` of the bit-reversed sample index
-/// to the 8 dimensions `4·set .. 4·set + 7` (zero beyond the last set).
-type Directions = [[Dir8; 16]];
+/// Sobol direction vectors of two consecutive dimension sets, combined by nibbles of the
+/// index: `[set][j][n]` is the XOR of the contributions (bit-reversed, as `sobol_burley` stores
+/// them) to the 8 dimensions `4·set .. 4·set + 7` (zero beyond the last set) of the bits
+/// `31 − 4j − b` (`b = 0..4`) of the bit-reversed sample index for which bit `3 − b` of `n` is
+/// set. Only the 16 high bits of that index can be set (at most 2¹⁶ samples), so a point is the
+/// XOR of four entries, one per nibble ([`nibbles`]).
+type Directions = [[[Dir8; 16]; 4]];
 
 /// Eight direction words, aligned for one 256-bit load.
 #[derive(Clone, Copy, Debug)]
@@ -38,7 +41,9 @@ struct Dir8([u32; 8]);
 
 /// The direction table, read off `sobol_burley::parts::sobol_int4_rev` once: a Sobol point is
 /// the XOR of the direction vectors of the index's set bits, so index `1 << (31 − k)` yields
-/// vector `k`. Lets [`Sampler`] XOR all 16 with masks (no data-dependent loop exit).
+/// vector `k`; the table holds the XOR of every subset of each group of four consecutive
+/// vectors, so that [`Sampler`] needs four look-ups instead of sixteen masked XORs (128 KiB
+/// for all 64 sets; a render touches the 2 KiB of each set its paths use).
 fn directions() -> &'static Directions {
     static TABLE: OnceLock<Box<Directions>> = OnceLock::new();
     TABLE.get_or_init(|| {
@@ -52,9 +57,22 @@ fn directions() -> &'static Directions {
         };
         (0..sets)
             .map(|set| {
-                std::array::from_fn(|k| {
+                let words: [[u32; 8]; 16] = std::array::from_fn(|k| {
                     let (a, b) = (dir(set, k), dir(set + 1, k));
-                    Dir8([a[0], a[1], a[2], a[3], b[0], b[1], b[2], b[3]])
+                    [a[0], a[1], a[2], a[3], b[0], b[1], b[2], b[3]]
+                });
+                std::array::from_fn(|j| {
+                    std::array::from_fn(|n| {
+                        let mut acc = [0u32; 8];
+                        for b in 0..4 {
+                            if (n >> (3 - b)) & 1 != 0 {
+                                for (x, w) in acc.iter_mut().zip(words[4 * j + b]) {
+                                    *x ^= w;
+                                }
+                            }
+                        }
+                        Dir8(acc)
+                    })
                 })
             })
             .collect()
@@ -63,6 +81,13 @@ fn directions() -> &'static Directions {
 
 /// `sobol_burley`'s per-lane scramble constants of a 4-dimension set.
 const LANE_SCRAMBLE: [u32; 4] = [0x912f_69ba, 0x174f_18ab, 0x691e_72ca, 0xb40c_c1b8];
+
+/// The four table indices of a bit-reversed sample index (see [`Directions`]): nibble `j` is
+/// bits `28 − 4j ..= 31 − 4j`.
+#[inline(always)]
+fn nibbles(rev_index: u32) -> [u8; 4] {
+    std::array::from_fn(|j| ((rev_index >> (28 - 4 * j)) & 0xf) as u8)
+}
 
 /// `Sampler::cached_set` when nothing is cached: far from every set (`set − NO_SET ≥ 2`).
 const NO_SET: u32 = u32::MAX / 2;
@@ -86,8 +111,9 @@ pub struct Sampler {
     seed: u64,
     pixel: u32,
     sample_index: u32,
-    /// `sobol_burley`'s bit-reversed, Owen-shuffled sample index for `scramble`.
-    shuffled_rev_index: u32,
+    /// `sobol_burley`'s bit-reversed, Owen-shuffled sample index for `scramble`, as the four
+    /// direction-table indices of its high 16 bits ([`nibbles`]).
+    index_nibbles: [u8; 4],
     /// `sobol_burley`'s per-dimension scramble base (`scramble · 0x9c8f2d3b`).
     scramble_mul: u32,
     dimension: u32,
@@ -117,10 +143,10 @@ impl Sampler {
             seed,
             pixel,
             sample_index,
-            shuffled_rev_index: sobol_burley::parts::owen_scramble_rev(
+            index_nibbles: nibbles(sobol_burley::parts::owen_scramble_rev(
                 sample_index.reverse_bits(),
                 sobol_burley::parts::hash(scramble ^ 0x79c6_8e4a),
-            ),
+            )),
             scramble_mul: scramble.wrapping_mul(0x9c8f_2d3b),
             dimension: 0,
             cached_set: NO_SET,
@@ -210,7 +236,7 @@ impl Sampler {
         };
         #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
         {
-            avx2::sobol_8d(dirs, self.shuffled_rev_index, self.scramble_mul, set)
+            avx2::sobol_8d(dirs, self.index_nibbles, self.scramble_mul, set)
         }
         #[cfg(not(all(target_arch = "x86_64", target_feature = "avx2")))]
         {
@@ -229,15 +255,13 @@ impl Sampler {
     /// One half of [`Self::sobol_8d`] with `sobol_burley`'s 4-lane helpers.
     #[cfg_attr(all(target_arch = "x86_64", target_feature = "avx2"), allow(dead_code))]
     #[inline]
-    fn sobol_4d_portable(&self, dirs: &[Dir8; 16], half: usize, set: u32) -> [f32; 4] {
+    fn sobol_4d_portable(&self, dirs: &[[Dir8; 16]; 4], half: usize, set: u32) -> [f32; 4] {
         use sobol_burley::parts::{hash_int4, owen_scramble_int4_rev};
-        // `sobol_int4_rev(shuffled_rev_index, set)`, branch-free.
-        let r = self.shuffled_rev_index;
+        // `sobol_int4_rev(shuffled_rev_index, set)`: one table entry per index nibble.
         let mut sobol = Int4::from([0u32; 4]);
-        for (k, d) in dirs.iter().enumerate() {
-            let mask = 0u32.wrapping_sub((r >> (31 - k)) & 1);
-            let d: [u32; 4] = std::array::from_fn(|i| d.0[4 * half + i]);
-            sobol ^= Int4::from(d) & Int4::from([mask; 4]);
+        for (group, &n) in dirs.iter().zip(&self.index_nibbles) {
+            let d: [u32; 4] = std::array::from_fn(|i| group[usize::from(n)].0[4 * half + i]);
+            sobol ^= Int4::from(d);
         }
         let base = self.scramble_mul ^ set;
         let scramble: Int4 = LANE_SCRAMBLE.map(|c| base ^ c).into();
@@ -266,39 +290,37 @@ mod avx2 {
 
     #[inline(always)]
     pub(super) fn sobol_8d(
-        dirs: &[Dir8; 16],
-        rev_index: u32,
+        dirs: &[[Dir8; 16]; 4],
+        index_nibbles: [u8; 4],
         scramble_mul: u32,
         set: u32,
     ) -> [f32; 8] {
         // SAFETY: AVX2 is enabled for the whole build (cfg); `Dir8` is 8 u32s aligned to 32.
         unsafe {
             let splat = |v: u32| _mm256_set1_epi32(v as i32);
-            // Sobol point: XOR of the direction words of the set index bits (bit 31 − k of
-            // `rev_index` selects word k); the bit is moved to the sign and spread by `srai`.
-            let mut sobol = _mm256_setzero_si256();
-            let mut bits = splat(rev_index);
-            for d in dirs {
-                let mask = _mm256_srai_epi32::<31>(bits);
-                let dir = _mm256_load_si256(d.0.as_ptr().cast());
-                sobol = _mm256_xor_si256(sobol, _mm256_and_si256(dir, mask));
-                bits = _mm256_add_epi32(bits, bits);
-            }
-            // Per-lane scramble seeds: the lane's set base XOR the lane constant.
-            let c = LANE_SCRAMBLE;
-            let (b0, b1) = (scramble_mul ^ set, scramble_mul ^ set.wrapping_add(1));
-            let mut h = _mm256_setr_epi32(
-                (b0 ^ c[0]) as i32,
-                (b0 ^ c[1]) as i32,
-                (b0 ^ c[2]) as i32,
-                (b0 ^ c[3]) as i32,
-                (b1 ^ c[0]) as i32,
-                (b1 ^ c[1]) as i32,
-                (b1 ^ c[2]) as i32,
-                (b1 ^ c[3]) as i32,
+            // Sobol point: XOR of the direction words of the index's set bits, four at a time
+            // (see `Directions`).
+            let load = |j: usize| {
+                _mm256_load_si256(
+                    dirs[j][usize::from(index_nibbles[j] & 0xf)]
+                        .0
+                        .as_ptr()
+                        .cast(),
+                )
+            };
+            let sobol = _mm256_xor_si256(
+                _mm256_xor_si256(load(0), load(1)),
+                _mm256_xor_si256(load(2), load(3)),
             );
-            // hash_int4
-            h = _mm256_xor_si256(h, splat(0xe6fe_3beb));
+            // Per-lane scramble seeds: the lane's set base XOR the lane constant, and XOR
+            // `hash_int4`'s first constant (folded into the lane constants).
+            let c = LANE_SCRAMBLE.map(|c| (c ^ 0xe6fe_3beb) as i32);
+            let (b0, b1) = (scramble_mul ^ set, scramble_mul ^ set.wrapping_add(1));
+            let mut h = _mm256_xor_si256(
+                _mm256_set_m128i(_mm_set1_epi32(b1 as i32), _mm_set1_epi32(b0 as i32)),
+                _mm256_setr_epi32(c[0], c[1], c[2], c[3], c[0], c[1], c[2], c[3]),
+            );
+            // hash_int4 (after its first XOR)
             h = _mm256_xor_si256(h, _mm256_srli_epi32::<16>(h));
             h = _mm256_mullo_epi32(h, splat(0x7feb_352d));
             h = _mm256_xor_si256(h, _mm256_srli_epi32::<15>(h));

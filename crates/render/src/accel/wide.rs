@@ -51,6 +51,9 @@ const TAG_SHIFT: u32 = 30;
 const TAG_INNER: u32 = 0;
 const TAG_PACKET: u32 = 1;
 const TAG_SPHERE: u32 = 2;
+/// An inner node whose children are all leaves (packets or spheres): traversal handles its
+/// children in place, nearest first, without pushing them (see [`WideBvh::intersect`]).
+const TAG_LEAVES: u32 = 3;
 const INDEX_MASK: u32 = (1 << TAG_SHIFT) - 1;
 const EMPTY: u32 = u32::MAX;
 
@@ -90,6 +93,44 @@ pub(super) struct WideBvh {
 
 /// A hit found by traversal: primitive index, `t` and barycentrics `(b1, b2)`.
 pub(super) type WideHit = (u32, f32, f32, f32);
+
+/// The closest hit so far during traversal.
+#[derive(Clone, Copy, Debug)]
+struct Closest {
+    /// `t` of the hit, else the ray's `t_max`.
+    t: f32,
+    /// Primitive index of the hit, [`NO_PRIM`] for none.
+    prim: u32,
+    /// Barycentric `b1` of the hit.
+    b1: f32,
+    /// Barycentric `b2` of the hit.
+    b2: f32,
+}
+
+/// [`Closest::prim`] before any hit (primitive indices stay below [`WIDE_MAX_PRIMS`]).
+const NO_PRIM: u32 = u32::MAX;
+
+impl Closest {
+    /// Takes a packet's closest hit, if it has one (then nearer than `self.t`: the packet was
+    /// tested against it).
+    #[inline(always)]
+    fn merge(&mut self, c: PacketClosest) {
+        if c.hit {
+            *self = Closest {
+                t: c.t,
+                prim: c.prim,
+                b1: c.b1,
+                b2: c.b2,
+            };
+        }
+    }
+
+    /// The hit, if any.
+    #[inline(always)]
+    fn hit(self) -> Option<WideHit> {
+        (self.prim != NO_PRIM).then_some((self.prim, self.t, self.b1, self.b2))
+    }
+}
 
 /// A primitive during the build.
 #[derive(Clone, Copy, Debug)]
@@ -223,10 +264,12 @@ impl WideBvh {
             child: [EMPTY; LANES],
         });
         let mut need = 0;
+        let mut leaves_only = true;
         for (lane, &(s, e)) in clusters.iter().enumerate() {
             let (lo, hi) = bounds(&items[s..e]);
             let (child, child_need) = self.build(prims, &mut items[s..e], depth + 1);
             need = need.max(child_need);
+            leaves_only &= matches!(child >> TAG_SHIFT, TAG_PACKET | TAG_SPHERE);
             let node = &mut self.nodes[index];
             for axis in 0..3 {
                 node.min[axis].0[lane] = lo[axis];
@@ -234,10 +277,10 @@ impl WideBvh {
             }
             node.child[lane] = child;
         }
-        (
-            (TAG_INNER << TAG_SHIFT) | index as u32,
-            clusters.len() - 1 + need,
-        )
+        let tag = if leaves_only { TAG_LEAVES } else { TAG_INNER };
+        // (The bound is kept for `TAG_LEAVES` nodes too, which push nothing: an overestimate,
+        // so the choice between this BVH and the CWBVH stays what it was.)
+        ((tag << TAG_SHIFT) | index as u32, clusters.len() - 1 + need)
     }
 
     /// A leaf for a leafable cluster.
@@ -266,8 +309,19 @@ impl WideBvh {
     #[inline]
     pub(super) fn intersect(&self, prims: &[Prim], ray: &RayShear, t_max: f32) -> Option<WideHit> {
         let boxes = BoxRay::new(ray);
-        let mut best_t = t_max;
-        let mut best: Option<WideHit> = None;
+        let mut best = Closest {
+            t: t_max,
+            prim: NO_PRIM,
+            b1: 0.0,
+            b2: 0.0,
+        };
+        if self.root >> TAG_SHIFT == TAG_LEAVES {
+            // A one-node tree (scenes the build packs into one node's 8 leaves, e.g. the
+            // Cornell box): no stack at all.
+            let node = &self.nodes[(self.root & INDEX_MASK) as usize];
+            self.leaves_closest(prims, node, &boxes, ray, &mut best);
+            return best.hit();
+        }
         // Uninitialised: only entries below `sp` are read (zeroing 512 bytes per ray cost ~3 %
         // of all instructions).
         let mut stack = [std::mem::MaybeUninit::<(u32, f32)>::uninit(); STACK];
@@ -277,14 +331,14 @@ impl WideBvh {
             sp -= 1;
             // SAFETY: entries below `sp` were written (pushes write before incrementing `sp`).
             let (r, t_near) = unsafe { stack[sp].assume_init() };
-            if t_near > best_t {
+            if t_near > best.t {
                 continue;
             }
             let index = (r & INDEX_MASK) as usize;
             match r >> TAG_SHIFT {
                 TAG_INNER => {
                     let node = &self.nodes[index];
-                    let (mask, t_in) = boxes.test(node, best_t);
+                    let (mask, t_in) = boxes.test(node, best.t);
                     // Push the hit children sorted by descending entry distance (insertion
                     // into the stack top) so that the nearest is popped first. Cannot
                     // overflow: the build checked the tree's stack need (see STACK).
@@ -304,28 +358,102 @@ impl WideBvh {
                         sp += 1;
                     }
                 }
-                TAG_PACKET => {
-                    if let Some(h) = packet_closest(&self.packets[index], ray, best_t) {
-                        best_t = h.1;
-                        best = Some(h);
-                    }
+                TAG_LEAVES => {
+                    self.leaves_closest(prims, &self.nodes[index], &boxes, ray, &mut best);
                 }
-                _ => {
-                    let p = &prims[index];
-                    if let Some(t) = intersect_sphere(p.a, p.b.x, ray.o, ray.d, best_t) {
-                        best_t = t;
-                        best = Some((index as u32, t, 0.0, 0.0));
-                    }
-                }
+                _ => self.leaf_closest(prims, r, ray, &mut best),
             }
         }
-        best
+        best.hit()
+    }
+
+    /// The closest-hit test of a [`TAG_LEAVES`] node's children. The stack path would push
+    /// them sorted and pop them at once, nearest first (equal entry distances: higher lane
+    /// first), skipping those entered beyond the closest hit so far. Same order and same skips
+    /// here, without the stack.
+    #[inline(always)]
+    fn leaves_closest(
+        &self,
+        prims: &[Prim],
+        node: &Node,
+        boxes: &BoxRay,
+        ray: &RayShear,
+        best: &mut Closest,
+    ) {
+        let (mut mask, t_in) = boxes.test(node, best.t);
+        while mask != 0 {
+            let lane = nearest_lane(&t_in, mask);
+            if t_in[lane] > best.t {
+                break;
+            }
+            mask &= !(1 << lane);
+            self.leaf_closest(prims, node.child[lane], ray, best);
+        }
+    }
+
+    /// The closest-hit test of leaf `r` (a packet or sphere reference): updates `best` when it
+    /// has a hit nearer than `best.t`.
+    #[inline(always)]
+    fn leaf_closest(&self, prims: &[Prim], r: u32, ray: &RayShear, best: &mut Closest) {
+        let index = (r & INDEX_MASK) as usize;
+        if r >> TAG_SHIFT == TAG_PACKET {
+            best.merge(packet_closest(&self.packets[index], ray, best.t));
+        } else {
+            let p = &prims[index];
+            if let Some(t) = intersect_sphere(p.a, p.b.x, ray.o, ray.d, best.t) {
+                *best = Closest {
+                    t,
+                    prim: index as u32,
+                    b1: 0.0,
+                    b2: 0.0,
+                };
+            }
+        }
+    }
+
+    /// The any-hit test of a [`TAG_LEAVES`] node's children, tested in place in the order the
+    /// stack would pop them (highest lane first).
+    #[inline(always)]
+    fn leaves_any(
+        &self,
+        prims: &[Prim],
+        node: &Node,
+        boxes: &BoxRay,
+        ray: &RayShear,
+        t_max: f32,
+    ) -> bool {
+        let (mut mask, _) = boxes.test(node, t_max);
+        while mask != 0 {
+            let lane = 31 - mask.leading_zeros() as usize;
+            mask &= !(1 << lane);
+            if self.leaf_any(prims, node.child[lane], ray, t_max) {
+                return true;
+            }
+        }
+        false
+    }
+
+    /// The any-hit test of leaf `r` (a packet or sphere reference).
+    #[inline(always)]
+    fn leaf_any(&self, prims: &[Prim], r: u32, ray: &RayShear, t_max: f32) -> bool {
+        let index = (r & INDEX_MASK) as usize;
+        if r >> TAG_SHIFT == TAG_PACKET {
+            packet_any(&self.packets[index], ray, t_max)
+        } else {
+            let p = &prims[index];
+            intersect_sphere(p.a, p.b.x, ray.o, ray.d, t_max).is_some()
+        }
     }
 
     /// Whether anything is hit with `t ∈ (0, t_max)`.
     #[inline]
     pub(super) fn occluded(&self, prims: &[Prim], ray: &RayShear, t_max: f32) -> bool {
         let boxes = BoxRay::new(ray);
+        if self.root >> TAG_SHIFT == TAG_LEAVES {
+            // A one-node tree: no stack (as in `intersect`).
+            let node = &self.nodes[(self.root & INDEX_MASK) as usize];
+            return self.leaves_any(prims, node, &boxes, ray, t_max);
+        }
         let mut stack = [std::mem::MaybeUninit::<u32>::uninit(); STACK];
         stack[0].write(self.root);
         let mut sp = 1;
@@ -346,14 +474,13 @@ impl WideBvh {
                         sp += 1;
                     }
                 }
-                TAG_PACKET => {
-                    if packet_any(&self.packets[index], ray, t_max) {
+                TAG_LEAVES => {
+                    if self.leaves_any(prims, &self.nodes[index], &boxes, ray, t_max) {
                         return true;
                     }
                 }
                 _ => {
-                    let p = &prims[index];
-                    if intersect_sphere(p.a, p.b.x, ray.o, ray.d, t_max).is_some() {
+                    if self.leaf_any(prims, r, ray, t_max) {
                         return true;
                     }
                 }
@@ -512,6 +639,36 @@ impl BoxRay {
     }
 }
 
+/// The lane of `mask` (non-zero) with the smallest `t_in`; among equal ones the highest lane
+/// (the order in which the traversal stack pops children pushed in lane order). AVX2 when the
+/// build target has it, else [`nearest_lane_portable`].
+#[inline(always)]
+fn nearest_lane(t_in: &[f32; LANES], mask: u32) -> usize {
+    #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+    {
+        avx2::nearest_lane(t_in, mask)
+    }
+    #[cfg(not(all(target_arch = "x86_64", target_feature = "avx2")))]
+    {
+        nearest_lane_portable(t_in, mask)
+    }
+}
+
+/// [`nearest_lane`] as a lane loop.
+#[cfg_attr(all(target_arch = "x86_64", target_feature = "avx2"), allow(dead_code))]
+#[inline(always)]
+fn nearest_lane_portable(t_in: &[f32; LANES], mask: u32) -> usize {
+    let mut lane = 0;
+    let mut t = f32::INFINITY;
+    let mut found = false;
+    for (l, &tl) in t_in.iter().enumerate() {
+        if mask >> l & 1 != 0 && (!found || tl <= t) {
+            (lane, t, found) = (l, tl, true);
+        }
+    }
+    lane
+}
+
 /// Result of a packet test: mask of lanes hit with `t ∈ (0, t_max)`, then `t`, `b1`, `b2` per
 /// lane (meaningful in the masked lanes only).
 type PacketHits = (u32, [f32; LANES], [f32; LANES], [f32; LANES]);
@@ -588,18 +745,58 @@ fn packet_test_portable(p: &Packet, ray: &RayShear, t_max: f32) -> PacketHits {
     (mask, t, b1, b2)
 }
 
-/// Closest triangle of a packet with `t < t_max`.
+/// The closest triangle of a packet with `t < t_max` (see [`packet_closest`]).
+#[derive(Clone, Copy, Debug)]
+struct PacketClosest {
+    /// Whether any lane was hit; the other fields are meaningful only then.
+    hit: bool,
+    /// The hit's `t` (`+∞` when nothing was hit).
+    t: f32,
+    /// Primitive index.
+    prim: u32,
+    /// Barycentric `b1`.
+    b1: f32,
+    /// Barycentric `b2`.
+    b2: f32,
+}
+
+/// Closest triangle of a packet with `t < t_max`; of equal `t`, the lowest lane (AVX2 when
+/// the build target has it, else [`packet_closest_portable`]).
 #[inline(always)]
-fn packet_closest(p: &Packet, ray: &RayShear, t_max: f32) -> Option<WideHit> {
+fn packet_closest(p: &Packet, ray: &RayShear, t_max: f32) -> PacketClosest {
+    #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+    {
+        avx2::packet_closest(p, ray, t_max)
+    }
+    #[cfg(not(all(target_arch = "x86_64", target_feature = "avx2")))]
+    {
+        packet_closest_portable(p, ray, t_max)
+    }
+}
+
+/// [`packet_closest`] as a lane loop.
+#[cfg_attr(all(target_arch = "x86_64", target_feature = "avx2"), allow(dead_code))]
+#[inline(always)]
+fn packet_closest_portable(p: &Packet, ray: &RayShear, t_max: f32) -> PacketClosest {
     let (mut mask, t, b1, b2) = packet_test(p, ray, t_max);
-    let mut best: Option<WideHit> = None;
-    let mut best_t = t_max;
+    let mut best = PacketClosest {
+        hit: false,
+        t: f32::INFINITY,
+        prim: 0,
+        b1: 0.0,
+        b2: 0.0,
+    };
     while mask != 0 {
         let l = mask.trailing_zeros() as usize;
         mask &= mask - 1;
-        if t[l] < best_t {
-            best_t = t[l];
-            best = Some((p.prim[l], t[l], b1[l], b2[l]));
+        if t[l] < best.t {
+            best = PacketClosest {
+                hit: true,
+                t: t[l],
+                prim: p.prim[l],
+                b1: b1[l],
+                b2: b2[l],
+            };
         }
     }
     best
@@ -623,7 +820,9 @@ fn edge_f64(p: f32, q: f32, r: f32, s: f32) -> f32 {
 mod avx2 {
     use std::arch::x86_64::*;
 
-    use super::{BoxRay, F8, LANES, Node, Packet, PacketHits, RayShear, TFAR_SCALE, edge_f64};
+    use super::{
+        BoxRay, F8, LANES, Node, Packet, PacketClosest, PacketHits, RayShear, TFAR_SCALE, edge_f64,
+    };
 
     #[inline(always)]
     fn load(v: &F8) -> __m256 {
@@ -638,6 +837,29 @@ mod avx2 {
         // SAFETY: as in `load`.
         unsafe { _mm256_store_ps(out.0.as_mut_ptr(), v) };
         out.0
+    }
+
+    /// [`super::nearest_lane`]: the masked lanes' minimum by three lane-swapping `min`s, then
+    /// the highest masked lane equal to it. Entry distances are never NaN (`maxps` with the
+    /// initial 0 keeps the non-NaN operand), so the minimum equals one of the masked lanes.
+    #[inline(always)]
+    pub(super) fn nearest_lane(t_in: &[f32; LANES], mask: u32) -> usize {
+        // SAFETY: AVX2 is enabled for the whole build (cfg): the intrinsics are available.
+        unsafe {
+            let bits = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
+            let live =
+                _mm256_cmpeq_epi32(_mm256_and_si256(_mm256_set1_epi32(mask as i32), bits), bits);
+            let t = _mm256_blendv_ps(
+                _mm256_set1_ps(f32::INFINITY),
+                _mm256_loadu_ps(t_in.as_ptr()),
+                _mm256_castsi256_ps(live),
+            );
+            let m = _mm256_min_ps(t, _mm256_permute2f128_ps::<1>(t, t));
+            let m = _mm256_min_ps(m, _mm256_permute_ps::<0b01_00_11_10>(m));
+            let m = _mm256_min_ps(m, _mm256_permute_ps::<0b10_11_00_01>(m));
+            let eq = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_EQ_OQ>(t, m)) as u32 & mask;
+            31 - eq.leading_zeros() as usize
+        }
     }
 
     #[inline(always)]
@@ -666,8 +888,14 @@ mod avx2 {
         }
     }
 
+    /// The packet test as vectors: lanes hit (all-ones lanes of the first), `t`, `v`, `w`
+    /// and `1 / det` per lane.
     #[inline(always)]
-    pub(super) fn packet_test(p: &Packet, ray: &RayShear, t_max: f32) -> PacketHits {
+    fn packet_lanes(
+        p: &Packet,
+        ray: &RayShear,
+        t_max: f32,
+    ) -> (__m256, __m256, __m256, __m256, __m256) {
         // SAFETY: AVX2 is enabled for the whole build (cfg): the intrinsics are available.
         unsafe {
             let [kx, ky, kz] = ray.k;
@@ -758,6 +986,15 @@ mod avx2 {
                     _mm256_cmp_ps::<_CMP_LT_OQ>(t, _mm256_set1_ps(t_max)),
                 ),
             );
+            (ok, t, v, w, inv_det)
+        }
+    }
+
+    #[inline(always)]
+    pub(super) fn packet_test(p: &Packet, ray: &RayShear, t_max: f32) -> PacketHits {
+        let (ok, t, v, w, inv_det) = packet_lanes(p, ray, t_max);
+        // SAFETY: AVX2 is enabled for the whole build (cfg): the intrinsics are available.
+        unsafe {
             let mask = _mm256_movemask_ps(ok) as u32;
             if mask == 0 {
                 return (0, [0.0; LANES], [0.0; LANES], [0.0; LANES]);
@@ -768,6 +1005,35 @@ mod avx2 {
                 store(_mm256_mul_ps(v, inv_det)),
                 store(_mm256_mul_ps(w, inv_det)),
             )
+        }
+    }
+
+    /// [`super::packet_closest`]: the hit lanes' smallest `t` by three lane-swapping `min`s,
+    /// then the lowest hit lane holding it (no loop over the hit lanes).
+    #[inline(always)]
+    pub(super) fn packet_closest(p: &Packet, ray: &RayShear, t_max: f32) -> PacketClosest {
+        let (ok, t, v, w, inv_det) = packet_lanes(p, ray, t_max);
+        // SAFETY: AVX2 is enabled for the whole build (cfg): the intrinsics are available.
+        unsafe {
+            let mask = _mm256_movemask_ps(ok) as u32;
+            let cand = _mm256_blendv_ps(_mm256_set1_ps(f32::INFINITY), t, ok);
+            let m = _mm256_min_ps(cand, _mm256_permute2f128_ps::<1>(cand, cand));
+            let m = _mm256_min_ps(m, _mm256_permute_ps::<0b01_00_11_10>(m));
+            let m = _mm256_min_ps(m, _mm256_permute_ps::<0b10_11_00_01>(m));
+            let eq = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_EQ_OQ>(cand, m)) as u32 & mask;
+            // Lane 0 when nothing was hit (then unused).
+            let lane = ((eq | 1 << LANES).trailing_zeros() as usize) & (LANES - 1);
+            let (b1, b2) = (
+                store(_mm256_mul_ps(v, inv_det)),
+                store(_mm256_mul_ps(w, inv_det)),
+            );
+            PacketClosest {
+                hit: mask != 0,
+                t: _mm256_cvtss_f32(m),
+                prim: p.prim[lane],
+                b1: b1[lane],
+                b2: b2[lane],
+            }
         }
     }
 }

@@ -42,7 +42,7 @@ pub mod microfacet;
 pub mod rough_conductor;
 pub mod rough_plastic;
 
-use glam::{Vec2, Vec3};
+use glam::{Vec2, Vec3, Vec4};
 use microfacet::Microfacet;
 pub use rough_plastic::RoughPlasticParams;
 
@@ -184,9 +184,22 @@ impl Bsdf {
 
     /// `(eval(wo, wi), pdf(wo, wi))` in one call, sharing the microfacet terms (what an
     /// integrator wants for MIS after light sampling).
-    #[inline]
+    ///
+    /// As in [`Self::sample`], the diffuse lobe is evaluated inline and the others out of line.
+    #[inline(always)]
     pub fn eval_pdf(&self, wo: Vec3, wi: Vec3) -> (Vec3, f32) {
         let (wo, wi, _) = self.orient(wo, wi);
+        match &self.kind {
+            BsdfKind::Diffuse { reflectance } => {
+                (diffuse::eval(*reflectance, wo, wi), diffuse::pdf(wo, wi))
+            }
+            _ => self.eval_pdf_non_diffuse(wo, wi),
+        }
+    }
+
+    /// [`Self::eval_pdf`] of the lobes other than diffuse (directions already oriented).
+    #[inline(never)]
+    fn eval_pdf_non_diffuse(&self, wo: Vec3, wi: Vec3) -> (Vec3, f32) {
         match &self.kind {
             BsdfKind::Diffuse { reflectance } => {
                 (diffuse::eval(*reflectance, wo, wi), diffuse::pdf(wo, wi))
@@ -214,10 +227,30 @@ impl Bsdf {
 
     /// Sample `wi` given `wo`; `u_lobe` picks the lobe, `u` the direction within it (both uniform
     /// in [0, 1)). `None` for a failed sample (wrong side, direction below the surface, pdf 0).
-    #[inline]
+    ///
+    /// The diffuse lobe (the most common, and the cheapest) is sampled inline; the others in
+    /// an out-of-line call, which keeps this function small enough to inline into the path
+    /// loop (no call, no `Option<BsdfSample>` through memory for the diffuse case).
+    #[inline(always)]
     pub fn sample(&self, wo: Vec3, u_lobe: f32, u: Vec2) -> Option<BsdfSample> {
         let (wo, _, flipped) = self.orient(wo, Vec3::Z);
         let mut s = match &self.kind {
+            BsdfKind::Diffuse { reflectance } => diffuse::sample(*reflectance, wo, u),
+            _ => self.sample_non_diffuse(wo, u_lobe, u),
+        }?;
+        if !valid_sample(s.weight, s.pdf) {
+            return None;
+        }
+        if flipped {
+            s.wi.z = -s.wi.z;
+        }
+        Some(s)
+    }
+
+    /// The lobe samples of [`Self::sample`] other than diffuse (`wo` already oriented).
+    #[inline(never)]
+    fn sample_non_diffuse(&self, wo: Vec3, u_lobe: f32, u: Vec2) -> Option<BsdfSample> {
+        match &self.kind {
             BsdfKind::Diffuse { reflectance } => diffuse::sample(*reflectance, wo, u),
             BsdfKind::Conductor {
                 eta,
@@ -246,14 +279,7 @@ impl Bsdf {
                 u_lobe,
                 u,
             ),
-        }?;
-        if !(s.weight.is_finite() && s.pdf.is_finite() && s.pdf > 0.0) {
-            return None;
         }
-        if flipped {
-            s.wi.z = -s.wi.z;
-        }
-        Some(s)
     }
 
     /// Whether every lobe is a Dirac delta (no MIS with light sampling possible).
@@ -282,6 +308,18 @@ impl Bsdf {
             } => *diffuse_reflectance,
         }
     }
+}
+
+/// Whether a sample's weight and pdf are finite and the pdf positive (what
+/// [`Bsdf::sample`] requires), with one vector comparison: `|x| < ∞` is exactly
+/// `x.is_finite()` (false for ±∞ and NaN).
+#[inline(always)]
+fn valid_sample(weight: Vec3, pdf: f32) -> bool {
+    Vec4::new(weight.x, weight.y, weight.z, pdf)
+        .abs()
+        .cmplt(Vec4::splat(f32::INFINITY))
+        .all()
+        && pdf > 0.0
 }
 
 /// One material, with colours still unevaluated and per-material precomputations done.
@@ -425,8 +463,32 @@ impl MaterialTable {
 
     /// The BSDF of material `id` at texture coordinates `uv`. An out-of-range id (which a
     /// validated scene never contains) gives Mitsuba's default material, grey diffuse 0.5.
-    #[inline]
+    ///
+    /// A diffuse material with a constant colour (the common case) is built inline; every
+    /// other one in an out-of-line call, which keeps this function small enough to inline
+    /// into the path loop.
+    #[inline(always)]
     pub fn bsdf(&self, id: scene::MaterialId, uv: Vec2) -> Bsdf {
+        if let Some((
+            Entry::Diffuse {
+                reflectance: scene::Color::Rgb(reflectance),
+            },
+            two_sided,
+        )) = self.entries.get(id as usize)
+        {
+            return Bsdf {
+                kind: BsdfKind::Diffuse {
+                    reflectance: *reflectance,
+                },
+                two_sided: *two_sided,
+            };
+        }
+        self.bsdf_general(id, uv)
+    }
+
+    /// [`Self::bsdf`] for every material.
+    #[inline(never)]
+    fn bsdf_general(&self, id: scene::MaterialId, uv: Vec2) -> Bsdf {
         let Some((entry, two_sided)) = self.entries.get(id as usize) else {
             return Bsdf::new(BsdfKind::Diffuse {
                 reflectance: Vec3::splat(0.5),

@@ -79,6 +79,10 @@ pub fn vertex_dimension(depth: u32) -> u32 {
 /// escapes — then `out.radiance` already holds the env radiance (unless hidden) — else the
 /// hit, the ray that found it and the emission seen directly at the hit (no MIS: the
 /// camera is a delta "BSDF", Mitsuba's `prev_bsdf_delta = true`).
+///
+/// Always inlined: as a call, its `Option<(Hit, Ray, Vec3)>` went through memory and the
+/// caller reloaded and spilled its whole loop state around it once per path.
+#[inline(always)]
 pub(crate) fn camera_hit(
     rs: &RenderScene,
     st: &RenderSettings,
@@ -176,9 +180,10 @@ pub fn trace<O: VertexObserver>(
             && let Some(mut ls) = lights.sample_light(sel_light, h.p, u_light)
             && {
                 ls.pdf *= sel_pmf;
-                ls.pdf > 0.0
+                // `pdf > 0 && pdf.is_finite()` as two comparisons (that form compiled to a
+                // ~20-instruction floating-point class test).
+                (ls.pdf > 0.0) & (ls.pdf < f32::INFINITY)
             }
-            && ls.pdf.is_finite()
         {
             let wi_local = frame.to_local(ls.wi);
             let (f, pdf_bsdf) = bsdf.eval_pdf(wo, wi_local);
