@@ -472,7 +472,14 @@ impl Inner {
             self.counters.stale.fetch_add(1, Ordering::Relaxed);
             return;
         }
-        self.upload(&l, result.encode()).await;
+        // Encoding a training result (its cell table is megabytes) takes tens of
+        // milliseconds: on a blocking thread, so this slot's next task — woken by the freed
+        // permit, and run by the same async threads — starts rendering meanwhile.
+        let body = match tokio::task::spawn_blocking(move || result.encode()).await {
+            Ok(b) => b,
+            Err(e) => return self.fail(&l, &format!("encode thread: {e}")).await,
+        };
+        self.upload(&l, body).await;
     }
 
     /// Starts heartbeating `l` every `heartbeat_ms`; a 409 sets `lost`. Stops when the
