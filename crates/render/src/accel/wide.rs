@@ -89,6 +89,10 @@ pub(super) struct WideBvh {
     packets: Vec<Packet>,
     /// Tagged reference of the root (a leaf when the scene fits in one).
     root: u32,
+    /// The root is a [`TAG_LEAVES`] node whose children are all packets (no spheres): the
+    /// one-node paths then skip the leaf tag test, and the sphere test's per-ray set-up,
+    /// which LLVM hoists out of the leaf loop, is not paid by scenes without spheres.
+    packets_only_root: bool,
 }
 
 /// A hit found by traversal: primitive index, `t` and barycentrics `(b1, b2)`.
@@ -190,9 +194,15 @@ impl WideBvh {
             nodes: Vec::new(),
             packets: Vec::new(),
             root: EMPTY,
+            packets_only_root: false,
         };
         let (root, need) = bvh.build(prims, &mut items, 0);
         bvh.root = root;
+        bvh.packets_only_root = root >> TAG_SHIFT == TAG_LEAVES
+            && bvh.nodes[(root & INDEX_MASK) as usize]
+                .child
+                .iter()
+                .all(|&c| c == EMPTY || c >> TAG_SHIFT == TAG_PACKET);
         // `need` entries above the root's own slot: the fixed-size stacks must hold them.
         (need < STACK).then_some(bvh)
     }
@@ -319,7 +329,11 @@ impl WideBvh {
             // A one-node tree (scenes the build packs into one node's 8 leaves, e.g. the
             // Cornell box): no stack at all.
             let node = &self.nodes[(self.root & INDEX_MASK) as usize];
-            self.leaves_closest(prims, node, &boxes, ray, &mut best);
+            if self.packets_only_root {
+                self.leaves_closest::<false>(prims, node, &boxes, ray, &mut best);
+            } else {
+                self.leaves_closest::<true>(prims, node, &boxes, ray, &mut best);
+            }
             return best.hit();
         }
         // Uninitialised: only entries below `sp` are read (zeroing 512 bytes per ray cost ~3 %
@@ -359,9 +373,9 @@ impl WideBvh {
                     }
                 }
                 TAG_LEAVES => {
-                    self.leaves_closest(prims, &self.nodes[index], &boxes, ray, &mut best);
+                    self.leaves_closest::<true>(prims, &self.nodes[index], &boxes, ray, &mut best);
                 }
-                _ => self.leaf_closest(prims, r, ray, &mut best),
+                _ => self.leaf_closest::<true>(prims, r, ray, &mut best),
             }
         }
         best.hit()
@@ -371,8 +385,9 @@ impl WideBvh {
     /// them sorted and pop them at once, nearest first (equal entry distances: higher lane
     /// first), skipping those entered beyond the closest hit so far. Same order and same skips
     /// here, without the stack.
+    /// `SPHERES = false`: every child is a packet (see [`WideBvh::packets_only_root`]).
     #[inline(always)]
-    fn leaves_closest(
+    fn leaves_closest<const SPHERES: bool>(
         &self,
         prims: &[Prim],
         node: &Node,
@@ -387,16 +402,22 @@ impl WideBvh {
                 break;
             }
             mask &= !(1 << lane);
-            self.leaf_closest(prims, node.child[lane], ray, best);
+            self.leaf_closest::<SPHERES>(prims, node.child[lane], ray, best);
         }
     }
 
     /// The closest-hit test of leaf `r` (a packet or sphere reference): updates `best` when it
-    /// has a hit nearer than `best.t`.
+    /// has a hit nearer than `best.t`. `SPHERES = false`: `r` is known to be a packet.
     #[inline(always)]
-    fn leaf_closest(&self, prims: &[Prim], r: u32, ray: &RayShear, best: &mut Closest) {
+    fn leaf_closest<const SPHERES: bool>(
+        &self,
+        prims: &[Prim],
+        r: u32,
+        ray: &RayShear,
+        best: &mut Closest,
+    ) {
         let index = (r & INDEX_MASK) as usize;
-        if r >> TAG_SHIFT == TAG_PACKET {
+        if !SPHERES || r >> TAG_SHIFT == TAG_PACKET {
             best.merge(packet_closest(&self.packets[index], ray, best.t));
         } else {
             let p = &prims[index];
@@ -413,8 +434,9 @@ impl WideBvh {
 
     /// The any-hit test of a [`TAG_LEAVES`] node's children, tested in place in the order the
     /// stack would pop them (highest lane first).
+    /// `SPHERES = false`: every child is a packet (see [`WideBvh::packets_only_root`]).
     #[inline(always)]
-    fn leaves_any(
+    fn leaves_any<const SPHERES: bool>(
         &self,
         prims: &[Prim],
         node: &Node,
@@ -426,18 +448,24 @@ impl WideBvh {
         while mask != 0 {
             let lane = 31 - mask.leading_zeros() as usize;
             mask &= !(1 << lane);
-            if self.leaf_any(prims, node.child[lane], ray, t_max) {
+            if self.leaf_any::<SPHERES>(prims, node.child[lane], ray, t_max) {
                 return true;
             }
         }
         false
     }
 
-    /// The any-hit test of leaf `r` (a packet or sphere reference).
+    /// The any-hit test of leaf `r` (a packet or sphere reference; a packet when `!SPHERES`).
     #[inline(always)]
-    fn leaf_any(&self, prims: &[Prim], r: u32, ray: &RayShear, t_max: f32) -> bool {
+    fn leaf_any<const SPHERES: bool>(
+        &self,
+        prims: &[Prim],
+        r: u32,
+        ray: &RayShear,
+        t_max: f32,
+    ) -> bool {
         let index = (r & INDEX_MASK) as usize;
-        if r >> TAG_SHIFT == TAG_PACKET {
+        if !SPHERES || r >> TAG_SHIFT == TAG_PACKET {
             packet_any(&self.packets[index], ray, t_max)
         } else {
             let p = &prims[index];
@@ -452,7 +480,11 @@ impl WideBvh {
         if self.root >> TAG_SHIFT == TAG_LEAVES {
             // A one-node tree: no stack (as in `intersect`).
             let node = &self.nodes[(self.root & INDEX_MASK) as usize];
-            return self.leaves_any(prims, node, &boxes, ray, t_max);
+            return if self.packets_only_root {
+                self.leaves_any::<false>(prims, node, &boxes, ray, t_max)
+            } else {
+                self.leaves_any::<true>(prims, node, &boxes, ray, t_max)
+            };
         }
         let mut stack = [std::mem::MaybeUninit::<u32>::uninit(); STACK];
         stack[0].write(self.root);
@@ -475,12 +507,12 @@ impl WideBvh {
                     }
                 }
                 TAG_LEAVES => {
-                    if self.leaves_any(prims, &self.nodes[index], &boxes, ray, t_max) {
+                    if self.leaves_any::<true>(prims, &self.nodes[index], &boxes, ray, t_max) {
                         return true;
                     }
                 }
                 _ => {
-                    if self.leaf_any(prims, r, ray, t_max) {
+                    if self.leaf_any::<true>(prims, r, ray, t_max) {
                         return true;
                     }
                 }
