@@ -1048,19 +1048,30 @@ mod avx2 {
         // SAFETY: AVX2 is enabled for the whole build (cfg): the intrinsics are available.
         unsafe {
             let mask = _mm256_movemask_ps(ok) as u32;
+            if mask == 0 {
+                // No hit: skip the lane minimum and the barycentrics (most packets tested).
+                return PacketClosest {
+                    hit: false,
+                    t: f32::INFINITY,
+                    prim: 0,
+                    b1: 0.0,
+                    b2: 0.0,
+                };
+            }
             let cand = _mm256_blendv_ps(_mm256_set1_ps(f32::INFINITY), t, ok);
             let m = _mm256_min_ps(cand, _mm256_permute2f128_ps::<1>(cand, cand));
             let m = _mm256_min_ps(m, _mm256_permute_ps::<0b01_00_11_10>(m));
             let m = _mm256_min_ps(m, _mm256_permute_ps::<0b10_11_00_01>(m));
             let eq = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_EQ_OQ>(cand, m)) as u32 & mask;
-            // Lane 0 when nothing was hit (then unused).
-            let lane = ((eq | 1 << LANES).trailing_zeros() as usize) & (LANES - 1);
+            // `eq` is non-zero (the minimum is one of the hit lanes); the mask keeps the index
+            // check away.
+            let lane = (eq.trailing_zeros() as usize) & (LANES - 1);
             let (b1, b2) = (
                 store(_mm256_mul_ps(v, inv_det)),
                 store(_mm256_mul_ps(w, inv_det)),
             );
             PacketClosest {
-                hit: mask != 0,
+                hit: true,
                 t: _mm256_cvtss_f32(m),
                 prim: p.prim[lane],
                 b1: b1[lane],
