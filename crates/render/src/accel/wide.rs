@@ -397,7 +397,12 @@ impl WideBvh {
     ) {
         let (mut mask, t_in) = boxes.test(node, best.t);
         while mask != 0 {
-            let lane = nearest_lane(&t_in, mask);
+            // A single candidate left (often the last one): no lane minimum needed.
+            let lane = if mask & (mask - 1) == 0 {
+                mask.trailing_zeros() as usize
+            } else {
+                nearest_lane(&t_in, mask)
+            };
             if t_in[lane] > best.t {
                 break;
             }
