@@ -925,8 +925,8 @@ mod avx2 {
         }
     }
 
-    /// The packet test as vectors: lanes hit (all-ones lanes of the first), `t`, `v`, `w`
-    /// and `1 / det` per lane.
+    /// The packet test as vectors: lanes hit (the sign bits of the first; its other bits are
+    /// meaningless), `t`, `v`, `w` and `1 / det` per lane.
     #[inline(always)]
     fn packet_lanes(
         p: &Packet,
@@ -971,7 +971,8 @@ mod avx2 {
                 _mm256_cmp_ps::<_CMP_EQ_OQ>(w, zero),
             );
             let mut fix = _mm256_movemask_ps(on_edge) as u32;
-            if fix != 0 {
+            // Sign bit set in the lanes that are *not* inside (other bits meaningless).
+            let outside = if fix != 0 {
                 let (ax, ay, bx, by, cx, cy) = (
                     store(ax),
                     store(ay),
@@ -991,21 +992,30 @@ mod avx2 {
                 u = load(&F8(us));
                 v = load(&F8(vs));
                 w = load(&F8(ws));
-            }
-            let all_ge = _mm256_and_ps(
-                _mm256_and_ps(
-                    _mm256_cmp_ps::<_CMP_GE_OQ>(u, zero),
-                    _mm256_cmp_ps::<_CMP_GE_OQ>(v, zero),
-                ),
-                _mm256_cmp_ps::<_CMP_GE_OQ>(w, zero),
-            );
-            let all_le = _mm256_and_ps(
-                _mm256_and_ps(
-                    _mm256_cmp_ps::<_CMP_LE_OQ>(u, zero),
-                    _mm256_cmp_ps::<_CMP_LE_OQ>(v, zero),
-                ),
-                _mm256_cmp_ps::<_CMP_LE_OQ>(w, zero),
-            );
+                let all_ge = _mm256_and_ps(
+                    _mm256_and_ps(
+                        _mm256_cmp_ps::<_CMP_GE_OQ>(u, zero),
+                        _mm256_cmp_ps::<_CMP_GE_OQ>(v, zero),
+                    ),
+                    _mm256_cmp_ps::<_CMP_GE_OQ>(w, zero),
+                );
+                let all_le = _mm256_and_ps(
+                    _mm256_and_ps(
+                        _mm256_cmp_ps::<_CMP_LE_OQ>(u, zero),
+                        _mm256_cmp_ps::<_CMP_LE_OQ>(v, zero),
+                    ),
+                    _mm256_cmp_ps::<_CMP_LE_OQ>(w, zero),
+                );
+                _mm256_xor_ps(
+                    _mm256_or_ps(all_ge, all_le),
+                    _mm256_castsi256_ps(_mm256_set1_epi32(-1)),
+                )
+            } else {
+                // No edge function is ±0: for a non-NaN `x ≠ 0`, `x ≥ 0` ⇔ `x > 0` ⇔ sign
+                // bit clear, so "all ≥ 0 or all ≤ 0" is "u, v, w have one sign" (sign bit of
+                // `(u ^ v) | (u ^ w)` clear). A NaN lane fails `det ≠ 0` below either way.
+                _mm256_or_ps(_mm256_xor_ps(u, v), _mm256_xor_ps(u, w))
+            };
             let det = _mm256_add_ps(_mm256_add_ps(u, v), w);
             let t_scaled = _mm256_add_ps(
                 _mm256_add_ps(_mm256_mul_ps(u, z[0]), _mm256_mul_ps(v, z[1])),
@@ -1013,14 +1023,16 @@ mod avx2 {
             );
             let inv_det = _mm256_div_ps(_mm256_set1_ps(1.0), det);
             let t = _mm256_mul_ps(t_scaled, inv_det);
-            let ok = _mm256_and_ps(
+            // `!outside & rest`: the sign bit is the hit flag (`movemask`, `blendv` and
+            // `vtestps` read only sign bits).
+            let ok = _mm256_andnot_ps(
+                outside,
                 _mm256_and_ps(
-                    _mm256_or_ps(all_ge, all_le),
                     _mm256_cmp_ps::<_CMP_NEQ_OQ>(det, zero),
-                ),
-                _mm256_and_ps(
-                    _mm256_cmp_ps::<_CMP_GT_OQ>(t, zero),
-                    _mm256_cmp_ps::<_CMP_LT_OQ>(t, _mm256_set1_ps(t_max)),
+                    _mm256_and_ps(
+                        _mm256_cmp_ps::<_CMP_GT_OQ>(t, zero),
+                        _mm256_cmp_ps::<_CMP_LT_OQ>(t, _mm256_set1_ps(t_max)),
+                    ),
                 ),
             );
             (ok, t, v, w, inv_det)
