@@ -57,7 +57,11 @@ pub enum AccelKind {
 }
 
 /// The BVH of an [`Accel`].
+///
+/// `repr(u8)`: an explicit tag byte, tested once per ray by one compare (the niche in
+/// `WideBvh`'s vectors took ~10 instructions to decode).
 #[derive(Clone, Debug)]
+#[repr(u8)]
 enum Bvh {
     /// No geometry.
     Empty,

@@ -217,6 +217,24 @@ impl Sampler {
         self.cached_set = first;
     }
 
+    /// [`Self::next_2d`] for a sampler fresh from [`Self::new`] (the camera's pixel position):
+    /// the first pair of sets evaluated and cached in line, without the out-of-line
+    /// [`Self::refill`] (same numbers, same state afterwards); any other state takes
+    /// `next_2d`.
+    #[inline(always)]
+    pub fn first_2d(&mut self) -> Vec2 {
+        if self.dimension == 0 && self.cached_set == NO_SET && self.sample_index < SOBOL_MAX_SAMPLES
+        {
+            // What `next_1d` does at dimensions 0 and 1: `refill(0)` (pair 0), then two reads.
+            self.cache = self.sobol_8d(pair_start(0));
+            self.cached_set = pair_start(0);
+            self.dimension = 2;
+            Vec2::new(self.cache[0], self.cache[1])
+        } else {
+            self.next_2d()
+        }
+    }
+
     /// The next two numbers as a point of `[0, 1)²`.
     #[inline]
     pub fn next_2d(&mut self) -> Vec2 {
@@ -440,6 +458,37 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn first_2d_equals_next_2d_and_leaves_the_same_state() {
+        for sample in [0u32, 9, 65_535, 65_536, 70_000] {
+            let fresh = Sampler::new(11, 5, sample);
+            let (mut a, mut b) = (fresh, fresh);
+            let (x, y) = (a.first_2d(), b.next_2d());
+            assert_eq!(
+                (x.x.to_bits(), x.y.to_bits()),
+                (y.x.to_bits(), y.y.to_bits())
+            );
+            // The following draws (cache and cursor) agree too.
+            for _ in 0..12 {
+                assert_eq!(
+                    a.next_1d().to_bits(),
+                    b.next_1d().to_bits(),
+                    "sample {sample}"
+                );
+            }
+        }
+        // Not fresh: the plain path.
+        let mut a = Sampler::new(3, 1, 2);
+        let mut b = a;
+        a.set_dimension(5);
+        b.set_dimension(5);
+        let (x, y) = (a.first_2d(), b.next_2d());
+        assert_eq!(
+            (x.x.to_bits(), x.y.to_bits()),
+            (y.x.to_bits(), y.y.to_bits())
+        );
     }
 
     #[test]

@@ -89,6 +89,10 @@ pub(super) struct WideBvh {
     packets: Vec<Packet>,
     /// Tagged reference of the root (a leaf when the scene fits in one).
     root: u32,
+    /// The root is a [`TAG_LEAVES`] node whose children are all packets (no spheres): the
+    /// one-node paths then skip the leaf tag test, and the sphere test's per-ray set-up,
+    /// which LLVM hoists out of the leaf loop, is not paid by scenes without spheres.
+    packets_only_root: bool,
 }
 
 /// A hit found by traversal: primitive index, `t` and barycentrics `(b1, b2)`.
@@ -190,9 +194,15 @@ impl WideBvh {
             nodes: Vec::new(),
             packets: Vec::new(),
             root: EMPTY,
+            packets_only_root: false,
         };
         let (root, need) = bvh.build(prims, &mut items, 0);
         bvh.root = root;
+        bvh.packets_only_root = root >> TAG_SHIFT == TAG_LEAVES
+            && bvh.nodes[(root & INDEX_MASK) as usize]
+                .child
+                .iter()
+                .all(|&c| c == EMPTY || c >> TAG_SHIFT == TAG_PACKET);
         // `need` entries above the root's own slot: the fixed-size stacks must hold them.
         (need < STACK).then_some(bvh)
     }
@@ -319,7 +329,11 @@ impl WideBvh {
             // A one-node tree (scenes the build packs into one node's 8 leaves, e.g. the
             // Cornell box): no stack at all.
             let node = &self.nodes[(self.root & INDEX_MASK) as usize];
-            self.leaves_closest(prims, node, &boxes, ray, &mut best);
+            if self.packets_only_root {
+                self.leaves_closest::<false>(prims, node, &boxes, ray, &mut best);
+            } else {
+                self.leaves_closest::<true>(prims, node, &boxes, ray, &mut best);
+            }
             return best.hit();
         }
         // Uninitialised: only entries below `sp` are read (zeroing 512 bytes per ray cost ~3 %
@@ -359,9 +373,9 @@ impl WideBvh {
                     }
                 }
                 TAG_LEAVES => {
-                    self.leaves_closest(prims, &self.nodes[index], &boxes, ray, &mut best);
+                    self.leaves_closest::<true>(prims, &self.nodes[index], &boxes, ray, &mut best);
                 }
-                _ => self.leaf_closest(prims, r, ray, &mut best),
+                _ => self.leaf_closest::<true>(prims, r, ray, &mut best),
             }
         }
         best.hit()
@@ -371,8 +385,9 @@ impl WideBvh {
     /// them sorted and pop them at once, nearest first (equal entry distances: higher lane
     /// first), skipping those entered beyond the closest hit so far. Same order and same skips
     /// here, without the stack.
+    /// `SPHERES = false`: every child is a packet (see [`WideBvh::packets_only_root`]).
     #[inline(always)]
-    fn leaves_closest(
+    fn leaves_closest<const SPHERES: bool>(
         &self,
         prims: &[Prim],
         node: &Node,
@@ -382,21 +397,32 @@ impl WideBvh {
     ) {
         let (mut mask, t_in) = boxes.test(node, best.t);
         while mask != 0 {
-            let lane = nearest_lane(&t_in, mask);
+            // A single candidate left (often the last one): no lane minimum needed.
+            let lane = if mask & (mask - 1) == 0 {
+                mask.trailing_zeros() as usize
+            } else {
+                nearest_lane(&t_in, mask)
+            };
             if t_in[lane] > best.t {
                 break;
             }
             mask &= !(1 << lane);
-            self.leaf_closest(prims, node.child[lane], ray, best);
+            self.leaf_closest::<SPHERES>(prims, node.child[lane], ray, best);
         }
     }
 
     /// The closest-hit test of leaf `r` (a packet or sphere reference): updates `best` when it
-    /// has a hit nearer than `best.t`.
+    /// has a hit nearer than `best.t`. `SPHERES = false`: `r` is known to be a packet.
     #[inline(always)]
-    fn leaf_closest(&self, prims: &[Prim], r: u32, ray: &RayShear, best: &mut Closest) {
+    fn leaf_closest<const SPHERES: bool>(
+        &self,
+        prims: &[Prim],
+        r: u32,
+        ray: &RayShear,
+        best: &mut Closest,
+    ) {
         let index = (r & INDEX_MASK) as usize;
-        if r >> TAG_SHIFT == TAG_PACKET {
+        if !SPHERES || r >> TAG_SHIFT == TAG_PACKET {
             best.merge(packet_closest(&self.packets[index], ray, best.t));
         } else {
             let p = &prims[index];
@@ -413,8 +439,9 @@ impl WideBvh {
 
     /// The any-hit test of a [`TAG_LEAVES`] node's children, tested in place in the order the
     /// stack would pop them (highest lane first).
+    /// `SPHERES = false`: every child is a packet (see [`WideBvh::packets_only_root`]).
     #[inline(always)]
-    fn leaves_any(
+    fn leaves_any<const SPHERES: bool>(
         &self,
         prims: &[Prim],
         node: &Node,
@@ -426,18 +453,24 @@ impl WideBvh {
         while mask != 0 {
             let lane = 31 - mask.leading_zeros() as usize;
             mask &= !(1 << lane);
-            if self.leaf_any(prims, node.child[lane], ray, t_max) {
+            if self.leaf_any::<SPHERES>(prims, node.child[lane], ray, t_max) {
                 return true;
             }
         }
         false
     }
 
-    /// The any-hit test of leaf `r` (a packet or sphere reference).
+    /// The any-hit test of leaf `r` (a packet or sphere reference; a packet when `!SPHERES`).
     #[inline(always)]
-    fn leaf_any(&self, prims: &[Prim], r: u32, ray: &RayShear, t_max: f32) -> bool {
+    fn leaf_any<const SPHERES: bool>(
+        &self,
+        prims: &[Prim],
+        r: u32,
+        ray: &RayShear,
+        t_max: f32,
+    ) -> bool {
         let index = (r & INDEX_MASK) as usize;
-        if r >> TAG_SHIFT == TAG_PACKET {
+        if !SPHERES || r >> TAG_SHIFT == TAG_PACKET {
             packet_any(&self.packets[index], ray, t_max)
         } else {
             let p = &prims[index];
@@ -452,7 +485,11 @@ impl WideBvh {
         if self.root >> TAG_SHIFT == TAG_LEAVES {
             // A one-node tree: no stack (as in `intersect`).
             let node = &self.nodes[(self.root & INDEX_MASK) as usize];
-            return self.leaves_any(prims, node, &boxes, ray, t_max);
+            return if self.packets_only_root {
+                self.leaves_any::<false>(prims, node, &boxes, ray, t_max)
+            } else {
+                self.leaves_any::<true>(prims, node, &boxes, ray, t_max)
+            };
         }
         let mut stack = [std::mem::MaybeUninit::<u32>::uninit(); STACK];
         stack[0].write(self.root);
@@ -475,12 +512,12 @@ impl WideBvh {
                     }
                 }
                 TAG_LEAVES => {
-                    if self.leaves_any(prims, &self.nodes[index], &boxes, ray, t_max) {
+                    if self.leaves_any::<true>(prims, &self.nodes[index], &boxes, ray, t_max) {
                         return true;
                     }
                 }
                 _ => {
-                    if self.leaf_any(prims, r, ray, t_max) {
+                    if self.leaf_any::<true>(prims, r, ray, t_max) {
                         return true;
                     }
                 }
@@ -888,8 +925,8 @@ mod avx2 {
         }
     }
 
-    /// The packet test as vectors: lanes hit (all-ones lanes of the first), `t`, `v`, `w`
-    /// and `1 / det` per lane.
+    /// The packet test as vectors: lanes hit (the sign bits of the first; its other bits are
+    /// meaningless), `t`, `v`, `w` and `1 / det` per lane.
     #[inline(always)]
     fn packet_lanes(
         p: &Packet,
@@ -934,7 +971,8 @@ mod avx2 {
                 _mm256_cmp_ps::<_CMP_EQ_OQ>(w, zero),
             );
             let mut fix = _mm256_movemask_ps(on_edge) as u32;
-            if fix != 0 {
+            // Sign bit set in the lanes that are *not* inside (other bits meaningless).
+            let outside = if fix != 0 {
                 let (ax, ay, bx, by, cx, cy) = (
                     store(ax),
                     store(ay),
@@ -954,21 +992,30 @@ mod avx2 {
                 u = load(&F8(us));
                 v = load(&F8(vs));
                 w = load(&F8(ws));
-            }
-            let all_ge = _mm256_and_ps(
-                _mm256_and_ps(
-                    _mm256_cmp_ps::<_CMP_GE_OQ>(u, zero),
-                    _mm256_cmp_ps::<_CMP_GE_OQ>(v, zero),
-                ),
-                _mm256_cmp_ps::<_CMP_GE_OQ>(w, zero),
-            );
-            let all_le = _mm256_and_ps(
-                _mm256_and_ps(
-                    _mm256_cmp_ps::<_CMP_LE_OQ>(u, zero),
-                    _mm256_cmp_ps::<_CMP_LE_OQ>(v, zero),
-                ),
-                _mm256_cmp_ps::<_CMP_LE_OQ>(w, zero),
-            );
+                let all_ge = _mm256_and_ps(
+                    _mm256_and_ps(
+                        _mm256_cmp_ps::<_CMP_GE_OQ>(u, zero),
+                        _mm256_cmp_ps::<_CMP_GE_OQ>(v, zero),
+                    ),
+                    _mm256_cmp_ps::<_CMP_GE_OQ>(w, zero),
+                );
+                let all_le = _mm256_and_ps(
+                    _mm256_and_ps(
+                        _mm256_cmp_ps::<_CMP_LE_OQ>(u, zero),
+                        _mm256_cmp_ps::<_CMP_LE_OQ>(v, zero),
+                    ),
+                    _mm256_cmp_ps::<_CMP_LE_OQ>(w, zero),
+                );
+                _mm256_xor_ps(
+                    _mm256_or_ps(all_ge, all_le),
+                    _mm256_castsi256_ps(_mm256_set1_epi32(-1)),
+                )
+            } else {
+                // No edge function is ±0: for a non-NaN `x ≠ 0`, `x ≥ 0` ⇔ `x > 0` ⇔ sign
+                // bit clear, so "all ≥ 0 or all ≤ 0" is "u, v, w have one sign" (sign bit of
+                // `(u ^ v) | (u ^ w)` clear). A NaN lane fails `det ≠ 0` below either way.
+                _mm256_or_ps(_mm256_xor_ps(u, v), _mm256_xor_ps(u, w))
+            };
             let det = _mm256_add_ps(_mm256_add_ps(u, v), w);
             let t_scaled = _mm256_add_ps(
                 _mm256_add_ps(_mm256_mul_ps(u, z[0]), _mm256_mul_ps(v, z[1])),
@@ -976,14 +1023,16 @@ mod avx2 {
             );
             let inv_det = _mm256_div_ps(_mm256_set1_ps(1.0), det);
             let t = _mm256_mul_ps(t_scaled, inv_det);
-            let ok = _mm256_and_ps(
+            // `!outside & rest`: the sign bit is the hit flag (`movemask`, `blendv` and
+            // `vtestps` read only sign bits).
+            let ok = _mm256_andnot_ps(
+                outside,
                 _mm256_and_ps(
-                    _mm256_or_ps(all_ge, all_le),
                     _mm256_cmp_ps::<_CMP_NEQ_OQ>(det, zero),
-                ),
-                _mm256_and_ps(
-                    _mm256_cmp_ps::<_CMP_GT_OQ>(t, zero),
-                    _mm256_cmp_ps::<_CMP_LT_OQ>(t, _mm256_set1_ps(t_max)),
+                    _mm256_and_ps(
+                        _mm256_cmp_ps::<_CMP_GT_OQ>(t, zero),
+                        _mm256_cmp_ps::<_CMP_LT_OQ>(t, _mm256_set1_ps(t_max)),
+                    ),
                 ),
             );
             (ok, t, v, w, inv_det)
@@ -1016,19 +1065,30 @@ mod avx2 {
         // SAFETY: AVX2 is enabled for the whole build (cfg): the intrinsics are available.
         unsafe {
             let mask = _mm256_movemask_ps(ok) as u32;
+            if mask == 0 {
+                // No hit: skip the lane minimum and the barycentrics (most packets tested).
+                return PacketClosest {
+                    hit: false,
+                    t: f32::INFINITY,
+                    prim: 0,
+                    b1: 0.0,
+                    b2: 0.0,
+                };
+            }
             let cand = _mm256_blendv_ps(_mm256_set1_ps(f32::INFINITY), t, ok);
             let m = _mm256_min_ps(cand, _mm256_permute2f128_ps::<1>(cand, cand));
             let m = _mm256_min_ps(m, _mm256_permute_ps::<0b01_00_11_10>(m));
             let m = _mm256_min_ps(m, _mm256_permute_ps::<0b10_11_00_01>(m));
             let eq = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_EQ_OQ>(cand, m)) as u32 & mask;
-            // Lane 0 when nothing was hit (then unused).
-            let lane = ((eq | 1 << LANES).trailing_zeros() as usize) & (LANES - 1);
+            // `eq` is non-zero (the minimum is one of the hit lanes); the mask keeps the index
+            // check away.
+            let lane = (eq.trailing_zeros() as usize) & (LANES - 1);
             let (b1, b2) = (
                 store(_mm256_mul_ps(v, inv_det)),
                 store(_mm256_mul_ps(w, inv_det)),
             );
             PacketClosest {
-                hit: mask != 0,
+                hit: true,
                 t: _mm256_cvtss_f32(m),
                 prim: p.prim[lane],
                 b1: b1[lane],

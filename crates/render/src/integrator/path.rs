@@ -353,7 +353,7 @@ pub fn sample_pixel(
         y.wrapping_mul(rs.width).wrapping_add(x),
         sample_index,
     );
-    let u = sampler.next_2d();
+    let u = sampler.first_2d();
     let ray = rs.camera.ray(Vec2::new(x as f32 + u.x, y as f32 + u.y));
     trace(rs, st, ray, &mut sampler, &mut super::NoObserver)
 }

@@ -138,7 +138,9 @@ impl MeshLight {
             return None; // back side: emits nothing, Mitsuba reports pdf 0
         }
         let pdf = dist2 / (cos_y * self.area);
-        (pdf.is_finite() && pdf > 0.0).then_some(AreaSample {
+        // `pdf.is_finite() && pdf > 0.0` as two comparisons (NaN fails both; that form
+        // compiled to a floating-point class test).
+        ((pdf > 0.0) & (pdf < f32::INFINITY)).then_some(AreaSample {
             wi,
             dist,
             n: tri.n,

@@ -93,7 +93,11 @@ pub enum LightKind {
 }
 
 /// One light.
+///
+/// `repr(u8)`: an explicit tag byte, one compare per light sample (decoding the niche in
+/// `MeshLight`'s vectors took ~8 instructions).
 #[derive(Clone, Debug, PartialEq)]
+#[repr(u8)]
 enum Light {
     /// Emitting mesh (index into [`scene::Scene::meshes`]).
     Mesh(MeshLight),
