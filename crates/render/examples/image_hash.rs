@@ -6,10 +6,9 @@
 //! `cargo run --release -p render --example image_hash -- SCENE.json [SPP] [THREADS] [auto|wide|cwbvh]`
 //! (defaults 4 spp, 1 thread, `auto`). The film does not depend on the thread count (DESIGN §3).
 
-use std::path::Path;
+use render::{RenderOptions, render_image};
 
-use render::accel::{Accel, AccelKind};
-use render::{RenderOptions, RenderScene, RenderSettings, render_image};
+mod common;
 
 /// FNV-1a, 64-bit (offset basis and prime of the reference description by Fowler, Noll, Vo).
 fn fnv1a(hash: u64, word: u64) -> u64 {
@@ -30,38 +29,8 @@ fn main() {
             .unwrap_or(default)
     };
     let (spp, threads) = (arg(2, 4), arg(3, 1));
-    let kind = match args.get(4).map(String::as_str) {
-        Some("wide") => AccelKind::Wide,
-        Some("cwbvh") => AccelKind::Cwbvh,
-        _ => AccelKind::Auto,
-    };
-    let loaded = scene::load_file(Path::new(path)).unwrap_or_else(|e| {
-        eprintln!("{path}: {e}");
-        std::process::exit(1);
-    });
-    let mut scene = loaded.scene;
-    scene.integrator.max_depth = 5;
-    scene.integrator.rr_depth = 6;
-    let st = RenderSettings {
-        spp,
-        seed: 1,
-        max_depth: 5,
-        rr_depth: 6,
-        ..RenderSettings::from_scene(&scene)
-    };
-    let mut rs = RenderScene::new(&scene, &st).unwrap_or_else(|e| {
-        eprintln!("{path}: {e}");
-        std::process::exit(1);
-    });
-    if kind != AccelKind::Auto {
-        let mesh_lights: Vec<_> = (0..scene.meshes.len())
-            .map(|i| rs.lights.mesh_light(i))
-            .collect();
-        let sphere_lights: Vec<_> = (0..scene.spheres.len())
-            .map(|i| rs.lights.sphere_light(i))
-            .collect();
-        rs.accel = Accel::with_kind(&scene, &mesh_lights, &sphere_lights, kind);
-    }
+    let kind = common::accel_kind(args.get(4).map(String::as_str));
+    let (rs, st) = common::prepare(path, spp, kind);
     let options = RenderOptions {
         tile_size: 32,
         threads: threads as usize,

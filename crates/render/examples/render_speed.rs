@@ -7,11 +7,11 @@
 //! best of the repeats (wall clock, and process CPU time, which is what to compare on a loaded
 //! machine with 1 thread) and the image mean.
 
-use std::path::Path;
 use std::time::Instant;
 
-use render::accel::{Accel, AccelKind};
-use render::{RenderOptions, RenderScene, RenderSettings, render_image};
+use render::{RenderOptions, render_image};
+
+mod common;
 
 #[path = "../tests/cpu_time/mod.rs"]
 mod cpu_time;
@@ -29,45 +29,8 @@ fn main() {
             .unwrap_or(default)
     };
     let (spp, threads, repeats) = (arg(2, 16), arg(3, 1), arg(4, 3).max(1));
-    let kind = match args.get(5).map(String::as_str) {
-        Some("wide") => AccelKind::Wide,
-        Some("cwbvh") => AccelKind::Cwbvh,
-        _ => AccelKind::Auto,
-    };
-    let loaded = match scene::load_file(Path::new(path)) {
-        Ok(l) => l,
-        Err(e) => {
-            eprintln!("{path}: {e}");
-            std::process::exit(1);
-        }
-    };
-    let mut scene = loaded.scene;
-    scene.integrator.max_depth = 5;
-    scene.integrator.rr_depth = 6;
-    let st = RenderSettings {
-        spp,
-        seed: 1,
-        max_depth: 5,
-        rr_depth: 6,
-        ..RenderSettings::from_scene(&scene)
-    };
-    let mut rs = match RenderScene::new(&scene, &st) {
-        Ok(rs) => rs,
-        Err(e) => {
-            eprintln!("{path}: {e}");
-            std::process::exit(1);
-        }
-    };
-    if kind != AccelKind::Auto {
-        let lights = &rs.lights;
-        let mesh_lights: Vec<_> = (0..scene.meshes.len())
-            .map(|i| lights.mesh_light(i))
-            .collect();
-        let sphere_lights: Vec<_> = (0..scene.spheres.len())
-            .map(|i| lights.sphere_light(i))
-            .collect();
-        rs.accel = Accel::with_kind(&scene, &mesh_lights, &sphere_lights, kind);
-    }
+    let kind = common::accel_kind(args.get(5).map(String::as_str));
+    let (rs, st) = common::prepare(path, spp, kind);
     let options = RenderOptions {
         tile_size: 32,
         threads: threads as usize,
