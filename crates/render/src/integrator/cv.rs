@@ -1013,7 +1013,12 @@ impl<'a> CvJob<'a> {
 
     /// Renders `samples` of `tile` without CV (surrogate phase).
     pub fn surrogate_tile(&self, tile: TileRect, samples: Range<u32>) -> TileFilm {
-        let t = Banded::run(&self.ctx, tile, samples, PhaseKind::Plain, None, None);
+        let input = PhaseInput {
+            kind: PhaseKind::Plain,
+            table: None,
+            surrogate: None,
+        };
+        let t = Banded::run(&self.ctx, tile, samples, input);
         TileFilm {
             film: t.film,
             rays: t.rays,
@@ -1036,7 +1041,12 @@ impl<'a> CvJob<'a> {
                 reason: "surrogate image size does not match the film",
             });
         }
-        let t = Banded::run(&self.ctx, tile, samples, PhaseKind::Train, None, surrogate);
+        let input = PhaseInput {
+            kind: PhaseKind::Train,
+            table: None,
+            surrogate,
+        };
+        let t = Banded::run(&self.ctx, tile, samples, input);
         // Each band's cells, merged in band order (see [`BAND_ROWS`]).
         let mut bands = t.cells.into_iter().map(|b| band_table(self.ctx.kind, b));
         let mut cells = bands
@@ -1107,14 +1117,12 @@ impl<'a> CvJob<'a> {
         samples: Range<u32>,
         table: &CoefficientTable,
     ) -> RenderTile {
-        let t = Banded::run(
-            &self.ctx,
-            tile,
-            samples,
-            PhaseKind::Apply,
-            Some(table),
-            None,
-        );
+        let input = PhaseInput {
+            kind: PhaseKind::Apply,
+            table: Some(table),
+            surrogate: None,
+        };
+        let t = Banded::run(&self.ctx, tile, samples, input);
         RenderTile {
             out: TileFilm {
                 film: t.film,
@@ -1148,6 +1156,15 @@ pub fn film_moments(film: &Film) -> Vec<PixelMoments> {
         .collect()
 }
 
+/// What a tile of a phase is rendered with, besides its rectangle and samples: the phase,
+/// the coefficient table (render phase) and the whole image's surrogate (training).
+#[derive(Clone, Copy)]
+struct PhaseInput<'a> {
+    kind: PhaseKind,
+    table: Option<&'a CoefficientTable>,
+    surrogate: Option<&'a [f64]>,
+}
+
 /// Rows of the bands a tile of any phase is rendered in: the bands of a tile run in
 /// parallel (rayon, in whatever pool is current: the in-process driver's, a farm worker's
 /// global one) and are joined in band order. Fixed — never derived from a thread count — so
@@ -1174,9 +1191,7 @@ impl Banded {
         ctx: &CvContext<'_>,
         tile: TileRect,
         samples: Range<u32>,
-        kind: PhaseKind,
-        table: Option<&CoefficientTable>,
-        surrogate: Option<&[f64]>,
+        input: PhaseInput<'_>,
     ) -> Self {
         let bands: Vec<TileRect> = (0..tile.height.div_ceil(BAND_ROWS))
             .map(|b| TileRect {
@@ -1188,7 +1203,7 @@ impl Banded {
             .collect();
         let outs: Vec<TileOut> = bands
             .par_iter()
-            .map(|&b| run_tile(ctx, b, samples.clone(), kind, table, surrogate))
+            .map(|&b| run_tile(ctx, b, samples.clone(), input))
             .collect();
         // Full-width bands of a row-major tile: the tile's arrays are the bands' arrays
         // one after the other.
@@ -1249,10 +1264,13 @@ fn run_tile(
     ctx: &CvContext<'_>,
     tile: TileRect,
     samples: Range<u32>,
-    kind: PhaseKind,
-    table: Option<&CoefficientTable>,
-    surrogate: Option<&[f64]>,
+    input: PhaseInput<'_>,
 ) -> TileOut {
+    let PhaseInput {
+        kind,
+        table,
+        surrogate,
+    } = input;
     let rs = ctx.rs;
     let st = &ctx.st;
     let mut film = Film::new_rect(tile.x0, tile.y0, tile.width, tile.height);
