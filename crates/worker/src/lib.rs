@@ -14,8 +14,11 @@
 //! 4. **Render** on a blocking thread while a heartbeat task extends the lease every
 //!    `heartbeat_ms` (from the moment the lease arrives). Each slot renders one task at a
 //!    time and keeps one more lease in hand, fetched and prepared while the current one
-//!    renders, so lease and upload round trips overlap rendering. A heartbeat answered 409 means the lease was lost (expired and
-//!    re-leased, or the job was cancelled): the result is dropped, not uploaded.
+//!    renders, so lease and upload round trips overlap rendering. A CV task (`cms`,
+//!    `per_light_cv`, `optimal_mis`) renders its tile in bands on the process's rayon pool,
+//!    i.e. on every core, whatever the slot count. The result is encoded on a blocking thread
+//!    after the render permit is freed. A heartbeat answered 409 means the lease was lost
+//!    (expired and re-leased, or the job was cancelled): the result is dropped, not uploaded.
 //! 5. **Upload** `PUT /v1/tasks/{id}/result?attempt=N`, retried on network errors (the
 //!    coordinator makes a repeated upload of an accepted attempt a no-op); a result the
 //!    coordinator refuses (4xx other than 409) is reported as a failed attempt.
