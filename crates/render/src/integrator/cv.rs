@@ -1048,18 +1048,8 @@ impl<'a> CvJob<'a> {
         };
         let t = Banded::run(&self.ctx, tile, samples, input);
         // Each band's cells, merged in band order (see [`BAND_ROWS`]).
-        let mut bands = t.cells.into_iter().map(|b| band_table(self.ctx.kind, b));
-        let mut cells = bands
-            .next()
-            .unwrap_or_else(|| band_table(self.ctx.kind, TileCells::default()));
-        for table in bands {
-            cells
-                .merge(&table)
-                .map_err(|_| RenderError::InvalidSetting {
-                    field: "estimator",
-                    reason: "training accumulators of different layouts",
-                })?;
-        }
+        let kind = self.ctx.kind;
+        let cells = merge_in_order(kind, t.cells.into_iter().map(|b| band_table(kind, b)))?;
         Ok(TrainTile {
             out: TileFilm {
                 film: t.film,
@@ -1208,13 +1198,19 @@ impl Banded {
         // Full-width bands of a row-major tile: the tile's arrays are the bands' arrays
         // one after the other.
         let mut joined = Banded {
-            film: Film::new_rect(tile.x0, tile.y0, tile.width, tile.height),
+            film: Film {
+                x0: tile.x0,
+                y0: tile.y0,
+                width: tile.width,
+                height: tile.height,
+                pixels: Vec::with_capacity(tile.pixel_count() as usize),
+                rejected: 0,
+            },
             rays: 0,
             cells: Vec::with_capacity(outs.len()),
             cv_sum: Vec::new(),
             cell_id: Vec::new(),
         };
-        joined.film.pixels.clear();
         for o in outs {
             joined.film.pixels.extend_from_slice(&o.film.pixels);
             joined.film.rejected += o.film.rejected;
@@ -1227,7 +1223,26 @@ impl Banded {
     }
 }
 
-/// A band's training cells as a table keyed by cell.
+/// Training tables merged in the given (canonical) order: the first is the start, each
+/// further one is merged into it; no table gives the empty table of the job's kind.
+fn merge_in_order(
+    kind: Kind,
+    tables: impl IntoIterator<Item = AccumulatorTable>,
+) -> Result<AccumulatorTable, RenderError> {
+    let mut tables = tables.into_iter();
+    let Some(mut merged) = tables.next() else {
+        return Ok(band_table(kind, TileCells::default()));
+    };
+    for t in tables {
+        merged.merge(&t).map_err(|_| RenderError::InvalidSetting {
+            field: "estimator",
+            reason: "training accumulators of different layouts",
+        })?;
+    }
+    Ok(merged)
+}
+
+/// A band's training cells as a table keyed by cell (of the job's kind, also when empty).
 fn band_table(kind: Kind, band: TileCells) -> AccumulatorTable {
     match kind {
         Kind::PerLight => {
@@ -1472,23 +1487,14 @@ pub fn render_estimator_image(
 
     // ---- merge in canonical tile order, solve ----
     let t0 = Instant::now();
-    let mut merged: Option<AccumulatorTable> = None;
+    let mut tables = Vec::with_capacity(outs.len());
     for o in outs {
         let o = o?;
         film.merge(&o.out.film);
         rays += o.out.rays;
-        match &mut merged {
-            None => merged = Some(o.cells),
-            Some(m) => m.merge(&o.cells).map_err(|_| RenderError::InvalidSetting {
-                field: "estimator",
-                reason: "training accumulators of different layouts",
-            })?,
-        }
+        tables.push(o.cells);
     }
-    let merged = merged.unwrap_or(match job.estimator() {
-        PhasedEstimator::PerLightCv(_) => AccumulatorTable::Mean(BTreeMap::new()),
-        _ => AccumulatorTable::Moments(BTreeMap::new()),
-    });
+    let merged = merge_in_order(job.ctx.kind, tables)?;
     let solved = merged.solve(&job.solve_policy(), opts.threads.max(1));
     let table = job.coefficient_table(&solved.coefficients)?;
     let layout = job.layout();
