@@ -233,9 +233,15 @@ pub struct Worker {
 impl Worker {
     /// Starts a worker with one slot against `url`.
     pub fn start(url: &str, name: &str) -> Self {
+        Self::start_slots(url, name, 1)
+    }
+
+    /// Starts a worker with `slots` slots against `url` (test timings: 1 s long polls,
+    /// 500 ms back-off cap).
+    pub fn start_slots(url: &str, name: &str, slots: usize) -> Self {
         let mut cfg = worker::WorkerConfig::new(url, ENROLL_TOKEN);
         cfg.name = name.into();
-        cfg.slots = 1;
+        cfg.slots = slots;
         cfg.poll_wait_ms = 1_000;
         cfg.max_backoff_ms = 500;
         Self::start_with(cfg)

@@ -154,14 +154,7 @@ fn overhead(backend: Backend, estimator: &str, scene_name: &str, res: u32, spp: 
     let client = &testfarm.client;
     let (n_workers, slots) = (arg("--workers", 2), arg("--slots", 1));
     let ws = (0..n_workers)
-        .map(|i| {
-            let mut cfg = worker::WorkerConfig::new(testfarm.url(), ENROLL_TOKEN);
-            cfg.name = format!("w{i}");
-            cfg.slots = slots;
-            cfg.poll_wait_ms = 1_000;
-            cfg.max_backoff_ms = 500;
-            e2e::Worker::start_with(cfg)
-        })
+        .map(|i| e2e::Worker::start_slots(&testfarm.url(), &format!("w{i}"), slots))
         .collect::<Vec<_>>();
     std::thread::sleep(Duration::from_millis(300)); // workers registered and polling
     let (mut local, mut farm, mut tasks) = (f64::INFINITY, f64::INFINITY, 0);
@@ -211,10 +204,11 @@ fn overhead(backend: Backend, estimator: &str, scene_name: &str, res: u32, spp: 
 
         let (t0, c0) = (Instant::now(), cpu_time::cpu_seconds());
         let id = client.submit(&spec);
-        // Polling is not free: at a fixed 5 ms (200 status requests/s, each a few queries on
-        // the coordinator sharing the 2 cores) it cost the farm 5-8 % more CPU than polling
-        // at 100 ms. So poll at a quarter of the job's ETA, between 5 ms (the end of the job
-        // is seen within 5 ms) and 100 ms (`--poll-ms` fixes the interval instead).
+        // Polling is not free: a fixed 5 ms is 200 status requests/s, each a few queries on
+        // the coordinator sharing the 2 cores with the workers (on a loaded machine it looked
+        // like 5-8 % more farm CPU than 100 ms; not confirmed on an idle one). So poll at a
+        // quarter of the job's ETA, between 5 ms (the end of the job is seen within 5 ms) and
+        // 100 ms (`--poll-ms` fixes the interval instead).
         let fixed = arg("--poll-ms", 0) as u64;
         let st = loop {
             let s = client.status(id);
