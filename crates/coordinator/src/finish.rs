@@ -78,7 +78,8 @@ pub enum Advance {
 /// at once, the loser's work thrown away by the conditional update — on a farm whose
 /// coordinator shares cores with workers that is CPU taken from rendering. A second caller
 /// in the same process therefore only raises the flag and returns; the caller doing the
-/// work looks again before it lets go, so no request to advance is lost. Correctness never
+/// work looks again before it lets go, so no request to advance is lost (when that caller
+/// fails, the reaper's next pass advances the job, as after a crash). Correctness never
 /// depends on it (coordinators on one PostgreSQL still race safely, as documented above),
 /// and it holds nothing a restart would need.
 #[derive(Debug, Default)]
