@@ -330,13 +330,26 @@ async fn barrier(state: &AppState, job: &JobRow, phase: &PhaseRow) -> Result<Adv
             job.id, job.estimator
         )));
     };
-    // The surrogate reads the pixel frames, training the stored tables.
-    let (blobs, tables) = match phase.kind {
-        PhaseKind::Train => (Vec::new(), store.phase_tables(job.id, phase.idx).await?),
+    tracing::debug!(phase = phase.kind.as_str(), "barrier: reading results");
+    // The surrogate reads the pixel frames, training the stored tables — unless this
+    // process folded every one of them as they were accepted ([`crate::train_merge`]).
+    let folded = match phase.kind {
+        PhaseKind::Train => {
+            state
+                .train_merges
+                .take(job.id, phase.idx, phase.tasks)
+                .await
+        }
+        _ => None,
+    };
+    let (blobs, tables) = match (phase.kind, &folded) {
+        (_, Some(_)) => (Vec::new(), Vec::new()),
+        (PhaseKind::Train, None) => (Vec::new(), store.phase_tables(job.id, phase.idx).await?),
         _ => (store.phase_results(job.id, phase.idx).await?, Vec::new()),
     };
+    tracing::debug!(folded = folded.is_some(), "barrier: inputs ready");
     let results = blobs.len() + tables.len();
-    if results as i64 != phase.tasks {
+    if folded.is_none() && results as i64 != phase.tasks {
         return Err(FinishError::Corrupt(format!(
             "{results} results for {} tasks",
             phase.tasks
@@ -362,25 +375,10 @@ async fn barrier(state: &AppState, job: &JobRow, phase: &PhaseRow) -> Result<Adv
                 Ok((blob, stats))
             }
             PhaseKind::Train => {
-                // Rows stored before tables were kept apart carry them inside the frame.
-                let tables = tables
-                    .into_iter()
-                    .map(|t| match t {
-                        StoredTable::Table(b) => Ok(b),
-                        StoredTable::Frame(f) => {
-                            let tile = frame::decode(&f, max_pixels)
-                                .map_err(|e| FinishError::Corrupt(e.to_string()))?;
-                            match <[_; 1]>::try_from(tile.cells) {
-                                Ok([block]) => Ok(block.data),
-                                Err(c) => Err(corrupt(cv::CvError::BlockCount(c.len()))),
-                            }
-                        }
-                    })
-                    .collect::<Result<Vec<_>, _>>()?;
-                let tables =
-                    cv::check_train_tables(&est, &resolved, &tables, threads).map_err(corrupt)?;
-                let merged =
-                    cv::merge_train(cv::table_kind(&est), tables, threads).map_err(corrupt)?;
+                let merged = match folded {
+                    Some(m) => m,
+                    None => merge_stored(&est, &resolved, tables, max_pixels, threads)?,
+                };
                 let solved = merged.solve(&est.solve_policy(), threads);
                 let blob = solved.encode();
                 let (cells, cells_solved, cells_fallback) = cv::solve_summary(&solved);
@@ -427,6 +425,35 @@ async fn barrier(state: &AppState, job: &JobRow, phase: &PhaseRow) -> Result<Adv
     Ok(Advance::NextPhase)
 }
 
+/// The train barrier's merge from the store: the stored tables (checked again) merged in
+/// canonical order on `threads` threads.
+fn merge_stored(
+    est: &PhasedEstimator,
+    resolved: &ResolvedJob,
+    tables: Vec<StoredTable>,
+    max_pixels: usize,
+    threads: usize,
+) -> Result<estimators::table::AccumulatorTable, FinishError> {
+    let corrupt = |e: cv::CvError| FinishError::Corrupt(e.to_string());
+    // Rows stored before tables were kept apart carry them inside the frame.
+    let tables = tables
+        .into_iter()
+        .map(|t| match t {
+            StoredTable::Table(b) => Ok(b),
+            StoredTable::Frame(f) => {
+                let tile = frame::decode(&f, max_pixels)
+                    .map_err(|e| FinishError::Corrupt(e.to_string()))?;
+                match <[_; 1]>::try_from(tile.cells) {
+                    Ok([block]) => Ok(block.data),
+                    Err(c) => Err(corrupt(cv::CvError::BlockCount(c.len()))),
+                }
+            }
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let tables = cv::check_train_tables(est, resolved, &tables, threads).map_err(corrupt)?;
+    cv::merge_train(cv::table_kind(est), tables, threads).map_err(corrupt)
+}
+
 /// Assembles and stores the outputs after the last phase, then marks the job done.
 async fn finish(
     state: &AppState,
@@ -449,6 +476,7 @@ async fn finish(
         attempts += store.progress(job.id, p.idx).await?.attempts;
         blobs.extend(b);
     }
+    tracing::debug!(results = blobs.len(), "assembly: results read");
     let max_pixels = state.config.limits.max_pixels as usize;
     let (job2, phases2) = (job.clone(), phases.to_vec());
     // Decoding, summing and EXR encoding are CPU work: keep them off the async workers.
@@ -457,6 +485,7 @@ async fn finish(
     })
     .await
     .map_err(|e| FinishError::Image(e.to_string()))??;
+    tracing::debug!("assembly: outputs encoded");
     for ((name, ctype), data) in OUTPUTS.iter().zip(&outputs) {
         store.put_artifact(job.id, name, ctype, data).await?;
     }

@@ -32,6 +32,7 @@ pub mod finish;
 pub mod reaper;
 pub mod routes;
 pub mod store;
+pub mod train_merge;
 
 use std::future::Future;
 use std::sync::Arc;
@@ -58,6 +59,10 @@ pub struct AppState {
     /// [`finish::Advancing`]. Not state: a hint that keeps the reaper and an upload of one
     /// process from running the same barrier or assembly side by side.
     pub advancing: finish::Advancing,
+    /// Train tables folded in canonical order as they are accepted
+    /// ([`train_merge::TrainMerges`]). A cache of stored results: the barrier reads the
+    /// store whenever it does not cover the whole phase.
+    pub train_merges: train_merge::TrainMerges,
 }
 
 /// A built coordinator, ready to serve.
@@ -105,6 +110,7 @@ impl App {
                 work_available: Notify::new(),
                 stopping: tokio::sync::watch::Sender::new(false),
                 advancing: finish::Advancing::default(),
+                train_merges: train_merge::TrainMerges::default(),
             }),
         })
     }

@@ -440,6 +440,7 @@ impl Inner {
     ) {
         let lost = Arc::new(AtomicBool::new(false));
         let _heartbeat = self.heartbeat(&l, lost.clone()).await;
+        tracing::debug!("leased");
         let prepared = match self.prepare(&l).await {
             Ok(p) => p,
             Err(e) => return self.fail(&l, &e).await,
@@ -448,9 +449,11 @@ impl Inner {
             Ok(i) => i,
             Err(e) => return self.fail(&l, &e).await,
         };
+        tracing::debug!(phase = l.phase.as_str(), "inputs ready");
         let Ok(render_permit) = permit.acquire_owned().await else {
             return;
         };
+        tracing::debug!("rendering");
         let _ = started.send(());
         if self.stopping() {
             // Shutdown before this prefetched task started: give it back.
@@ -465,6 +468,7 @@ impl Inner {
         let rendered =
             tokio::task::spawn_blocking(move || prepared.render_task(header, phase, &inputs)).await;
         drop(render_permit);
+        tracing::debug!("rendered");
         let result = match rendered {
             Ok(Ok(r)) => r,
             Ok(Err(e)) => return self.fail(&l, &e.to_string()).await,
@@ -528,6 +532,7 @@ impl Inner {
             {
                 Ok(r) if r.status().is_success() => {
                     self.counters.uploaded.fetch_add(1, Ordering::Relaxed);
+                    tracing::debug!(bytes = body.len(), "uploaded");
                     return;
                 }
                 Ok(r) if r.status() == StatusCode::CONFLICT => {

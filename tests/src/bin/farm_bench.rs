@@ -547,6 +547,15 @@ fn barrier_breakdown(coord: &Coordinator, id: i64, train: i64) {
 }
 
 fn main() {
+    // `RUST_LOG=coordinator=debug,worker=debug` prints the farm's timeline (lease, inputs,
+    // render, upload, barrier) with the time since start, to see where a job waits.
+    if std::env::var_os("RUST_LOG").is_some() {
+        tracing_subscriber::fmt()
+            .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
+            .with_timer(tracing_subscriber::fmt::time::uptime())
+            .with_writer(std::io::stderr)
+            .init();
+    }
     let args: Vec<String> = std::env::args().collect();
     let backend = if args.iter().any(|a| a == "--pg") {
         Backend::Postgres

@@ -23,6 +23,7 @@ use axum::extract::{DefaultBodyLimit, Path, Query, State};
 use axum::http::HeaderMap;
 use axum::routing::{post, put};
 use axum::{Json, Router};
+use estimators::table::AccumulatorTable;
 use protocol::lease::{HeartbeatResponse, JobState, PhaseKind, UploadResponse};
 use protocol::{ApiError, JobSpec, cv, frame};
 use serde::Deserialize;
@@ -111,6 +112,7 @@ async fn upload(
         .record("task", task.id)
         .record("attempt", attempt);
     let body = body?;
+    tracing::debug!(bytes = body.len(), "upload received");
     let max_pixels = task.rect.pixel_count();
     let decoded = frame::decode(&body, max_pixels)
         .map_err(|e| AppError::BadRequest(ApiError::new("invalid_frame", e.to_string())))?;
@@ -136,7 +138,15 @@ async fn upload(
     if (h.sample_start, h.sample_end) != (task.sample_start, task.sample_end) {
         return Err(mismatch("sample range"));
     }
-    let layout = check_cells(&st, &task, &decoded).await?;
+    let (layout, table) = match check_cells(&st, &task, &decoded).await? {
+        Some((layout, table)) => (layout, Some(table)),
+        None => (None, None),
+    };
+    // A train table is folded into its phase's canonical prefix once accepted; the place
+    // is reserved before the result is stored, so the barrier waits for it.
+    let place = table
+        .is_some()
+        .then(|| st.train_merges.reserve(task.job_id, task.phase_idx));
     // A train result's table is stored apart from its pixels (assembly never reads it).
     let pixels_only;
     let (data, cells): (&[u8], Option<&[u8]>) = match decoded.cells.as_slice() {
@@ -156,6 +166,7 @@ async fn upload(
         .await?
     {
         UploadOutcome::Accepted => {
+            tracing::debug!("upload stored");
             if let Some(layout) = layout {
                 st.store
                     .set_phase_layout(task.job_id, task.phase_idx, &layout)
@@ -168,7 +179,15 @@ async fn upload(
             let st2 = st.clone();
             let job = task.job_id;
             let complete = progress.done == progress.total;
+            let seq = task.seq;
             tokio::spawn(async move {
+                if let (Some(place), Some(table)) = (place, table) {
+                    // A fold of one table is milliseconds of CPU: off the async threads.
+                    let folded = tokio::task::spawn_blocking(move || place.offer(seq, table)).await;
+                    if let Err(e) = folded {
+                        tracing::error!(job, error = %e, "folding a train table failed");
+                    }
+                }
                 let stopped = match crate::finish::check_rounds(&st2, job).await {
                     Ok(s) => s,
                     Err(e) => {
@@ -209,11 +228,14 @@ fn invalid_cells(message: impl Into<String>) -> AppError {
 
 /// Checks the cell blocks of an upload against its phase and the job's estimator; returns
 /// the layout signature of a train block (to record on the phase when it is the first).
+/// Checks a result's cell block against its phase: none outside `train`; in `train` one
+/// valid table of the job's layout. Returns the table's layout signature and the decoded
+/// table for a `train` result, `None` for the other phases.
 async fn check_cells(
     st: &AppState,
     task: &TaskRow,
     decoded: &protocol::TileResult,
-) -> AppResult<Option<String>> {
+) -> AppResult<Option<(Option<String>, AccumulatorTable)>> {
     let phase = st
         .store
         .phase(task.job_id, task.phase_idx)
@@ -258,7 +280,7 @@ async fn check_cells(
             .to_string(),
         ));
     }
-    Ok(sig)
+    Ok(Some((sig, table)))
 }
 
 #[tracing::instrument(skip_all)]
