@@ -314,6 +314,30 @@ fn estimator_of(job: &JobRow) -> Result<Option<PhasedEstimator>, FinishError> {
     Ok(spec.estimator.phased())
 }
 
+/// [`decode_all`] on up to `threads` threads (contiguous chunks, results in order).
+fn decode_parallel(
+    blobs: &[Vec<u8>],
+    max_pixels: usize,
+    threads: usize,
+) -> Result<Vec<TileResult>, FinishError> {
+    let chunk = blobs.len().div_ceil(threads.max(1)).max(1);
+    let parts: Vec<_> = std::thread::scope(|s| {
+        let handles: Vec<_> = blobs
+            .chunks(chunk)
+            .map(|c| s.spawn(move || decode_all(c, max_pixels)))
+            .collect();
+        handles
+            .into_iter()
+            .map(|h| h.join().expect("decode thread panicked"))
+            .collect()
+    });
+    let mut out = Vec::with_capacity(blobs.len());
+    for p in parts {
+        out.extend(p?);
+    }
+    Ok(out)
+}
+
 fn decode_all(blobs: &[Vec<u8>], max_pixels: usize) -> Result<Vec<TileResult>, FinishError> {
     blobs
         .iter()
@@ -365,7 +389,7 @@ async fn barrier(state: &AppState, job: &JobRow, phase: &PhaseRow) -> Result<Adv
         let corrupt = |e: cv::CvError| FinishError::Corrupt(e.to_string());
         match kind {
             PhaseKind::Surrogate => {
-                let tiles = decode_all(&blobs, max_pixels)?;
+                let tiles = decode_parallel(&blobs, max_pixels, threads)?;
                 let blob = cv::surrogate_blob(&resolved, &tiles).map_err(corrupt)?;
                 let stats = BarrierStats {
                     seconds: t0.elapsed().as_secs_f64(),
@@ -509,18 +533,27 @@ fn build_outputs(
     phases: &[PhaseRow],
 ) -> Result<[Vec<u8>; 3], FinishError> {
     let r = &job.resolved;
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    // Decoded on all cores, summed in canonical order (the bits do not depend on threads).
+    let tiles = decode_parallel(blobs, max_pixels, threads)?;
     let mut acc = ImageAccumulator::new(r.width, r.height);
-    for b in blobs {
-        let tile: TileResult =
-            frame::decode(b, max_pixels).map_err(|e| FinishError::Corrupt(e.to_string()))?;
-        acc.add(&tile)
+    for tile in &tiles {
+        acc.add(tile)
             .map_err(|e| FinishError::Corrupt(e.to_string()))?;
     }
+    drop(tiles);
     let img = acc.finish();
-    let exr = encode_exr(&img)?;
-    let rgb = triples(&img.beauty);
-    let png = imageio::encode_png_preview(img.width, img.height, &rgb)
-        .map_err(|e| FinishError::Image(e.to_string()))?;
+    // The EXR and the preview are independent: encoded side by side.
+    let (exr, png) = std::thread::scope(|s| {
+        let png = s.spawn(|| {
+            let rgb = triples(&img.beauty);
+            imageio::encode_png_preview(img.width, img.height, &rgb)
+                .map_err(|e| FinishError::Image(e.to_string()))
+        });
+        let exr = encode_exr(&img);
+        (exr, png.join().expect("preview thread panicked"))
+    });
+    let (exr, png) = (exr?, png?);
     let now = now_ms();
     let stats = JobStats {
         job_id: job.id,
