@@ -314,28 +314,15 @@ fn estimator_of(job: &JobRow) -> Result<Option<PhasedEstimator>, FinishError> {
     Ok(spec.estimator.phased())
 }
 
-/// [`decode_all`] on up to `threads` threads (contiguous chunks, results in order).
+/// [`decode_all`] on up to `threads` threads (results in order).
 fn decode_parallel(
     blobs: &[Vec<u8>],
     max_pixels: usize,
     threads: usize,
 ) -> Result<Vec<TileResult>, FinishError> {
-    let chunk = blobs.len().div_ceil(threads.max(1)).max(1);
-    let parts: Vec<_> = std::thread::scope(|s| {
-        let handles: Vec<_> = blobs
-            .chunks(chunk)
-            .map(|c| s.spawn(move || decode_all(c, max_pixels)))
-            .collect();
-        handles
-            .into_iter()
-            .map(|h| h.join().expect("decode thread panicked"))
-            .collect()
-    });
-    let mut out = Vec::with_capacity(blobs.len());
-    for p in parts {
-        out.extend(p?);
-    }
-    Ok(out)
+    cv::map_ordered(blobs, threads, |b| {
+        frame::decode(b, max_pixels).map_err(|e| FinishError::Corrupt(e.to_string()))
+    })
 }
 
 fn decode_all(blobs: &[Vec<u8>], max_pixels: usize) -> Result<Vec<TileResult>, FinishError> {

@@ -189,24 +189,30 @@ pub fn check_train_tables<B: AsRef<[u8]> + Sync>(
     blobs: &[B],
     threads: usize,
 ) -> Result<Vec<AccumulatorTable>, CvError> {
-    let chunk = blobs.len().div_ceil(threads.max(1)).max(1);
-    let parts: Vec<Result<Vec<AccumulatorTable>, CvError>> = std::thread::scope(|s| {
-        let handles: Vec<_> = blobs
+    map_ordered(blobs, threads, |b| check_train_table(est, job, b.as_ref()))
+}
+
+/// `f` of every item on up to `threads` threads (contiguous chunks, one scoped thread each);
+/// the outputs come back in the order given and the first error (in that order) wins. For
+/// the decoding and checking of uploaded results, where each item is independent.
+pub fn map_ordered<T: Sync, U: Send, E: Send>(
+    items: &[T],
+    threads: usize,
+    f: impl Fn(&T) -> Result<U, E> + Sync,
+) -> Result<Vec<U>, E> {
+    let chunk = items.len().div_ceil(threads.max(1)).max(1);
+    let f = &f;
+    let parts: Vec<Result<Vec<U>, E>> = std::thread::scope(|s| {
+        let handles: Vec<_> = items
             .chunks(chunk)
-            .map(|c| {
-                s.spawn(move || {
-                    c.iter()
-                        .map(|b| check_train_table(est, job, b.as_ref()))
-                        .collect()
-                })
-            })
+            .map(|c| s.spawn(move || c.iter().map(f).collect()))
             .collect();
         handles
             .into_iter()
-            .map(|h| h.join().expect("table check thread panicked"))
+            .map(|h| h.join().expect("worker thread panicked"))
             .collect()
     });
-    let mut out = Vec::with_capacity(blobs.len());
+    let mut out = Vec::with_capacity(items.len());
     for p in parts {
         out.extend(p?);
     }
