@@ -23,7 +23,9 @@
 //!   a nonzero `λ_k` for at most one of them, and `K` **overlapping** components (BSDF,
 //!   guiding lobes). The matrix `A` is therefore stored sparsely: the diagonal of the
 //!   partition block, the `P × K` cross block and the small dense `K × K` block; partitions
-//!   are stored only once sampled, in a list sorted by index.
+//!   are stored only once sampled: their moments in first-touch order (a new partition is
+//!   appended, nothing moves), their indices in a sorted list pointing at those slots, so
+//!   every reader (iteration, merge, encoding, equality) sees them in increasing index order.
 //! - Accumulation is in `f64` whatever the caller's precision. A sample with a NaN/Inf
 //!   anywhere, a non-positive pdf or an out-of-range index is **rejected and counted**
 //!   ([`CellAccumulator::rejected`]) and leaves every sum untouched.
@@ -35,7 +37,8 @@
 //!
 //! # Hot loop
 //! [`CellAccumulator::add`] allocates only the first time a partition is seen in the
-//! cell; it touches the dense block, the overlapping right-hand sides and the one sampled
+//! cell (an append of its moments and one insertion into the sorted `u32` index list); it
+//! touches the dense block, the overlapping right-hand sides and the one sampled
 //! partition's entry (found through a direct index map when `P <= DIRECT_MAP_MAX`, else by
 //! binary search with a one-entry cache for runs of samples from the same light).
 //! Measured: 18–28 ns per sample for `P = 64`, `K = 2`, RGB (`benches/cells.rs`).
@@ -222,14 +225,18 @@ pub struct CellAccumulator {
     b_overlap: Vec<f64>,
     /// Sampled partition indices, strictly increasing.
     part_ids: Vec<u32>,
+    /// Per entry of `part_ids`: the storage slot of its moments.
+    part_slots: Vec<u32>,
+    /// Per storage slot (first-touch order): accepted samples of the partition.
     part_counts: Vec<u64>,
-    /// Per entry: `[diag, cross_0..K, b_0..C]`.
+    /// Per storage slot: `[diag, cross_0..K, b_0..C]`.
     part_data: Vec<f64>,
-    /// Slot of the most recently used partition (hot-loop cache; not part of equality).
-    last_slot: usize,
-    /// Direct partition → slot map (`u32::MAX` = not sampled) when `P <= DIRECT_MAP_MAX`,
-    /// else empty and slots are found by binary search (hot-loop cache; not part of
-    /// equality or the encoding).
+    /// Partition and storage slot of the most recently used partition (`u32::MAX` = none;
+    /// hot-loop cache, not part of equality).
+    last: (u32, u32),
+    /// Direct partition → storage slot map (`u32::MAX` = not sampled) when
+    /// `P <= DIRECT_MAP_MAX`, else empty and slots are found by binary search (hot-loop
+    /// cache; not part of equality or the encoding).
     slot_map: Vec<u32>,
 }
 
@@ -254,8 +261,10 @@ impl PartialEq for CellAccumulator {
             && self.dense == o.dense
             && self.b_overlap == o.b_overlap
             && self.part_ids == o.part_ids
-            && self.part_counts == o.part_counts
-            && self.part_data == o.part_data
+            && self.part_slots.iter().zip(&o.part_slots).all(|(&a, &b)| {
+                let (a, b) = (a as usize, b as usize);
+                self.part_counts[a] == o.part_counts[b] && self.entry(a) == o.entry(b)
+            })
     }
 }
 
@@ -273,9 +282,10 @@ impl CellAccumulator {
             dense: vec![0.0; k * (k + 1) / 2],
             b_overlap: vec![0.0; k * color.channels()],
             part_ids: Vec::new(),
+            part_slots: Vec::new(),
             part_counts: Vec::new(),
             part_data: Vec::new(),
-            last_slot: 0,
+            last: (u32::MAX, 0),
             slot_map: if layout.partitions <= DIRECT_MAP_MAX {
                 vec![u32::MAX; layout.partitions as usize]
             } else {
@@ -334,6 +344,32 @@ impl CellAccumulator {
         1 + self.layout.overlapping as usize + self.color.channels()
     }
 
+    /// The moments `[diag, cross_0..K, b_0..C]` of storage slot `slot`.
+    fn entry(&self, slot: usize) -> &[f64] {
+        let stride = self.stride();
+        &self.part_data[slot * stride..(slot + 1) * stride]
+    }
+
+    fn moments(&self, id: u32, slot: usize) -> PartitionMoments<'_> {
+        let (k, c) = (self.layout.overlapping as usize, self.color.channels());
+        let d = self.entry(slot);
+        PartitionMoments {
+            id,
+            count: self.part_counts[slot],
+            diag: d[0],
+            cross: &d[1..1 + k],
+            b: &d[1 + k..1 + k + c],
+        }
+    }
+
+    /// `(partition, storage slot)` of the sampled partitions in increasing index order.
+    fn sorted_slots(&self) -> impl ExactSizeIterator<Item = (u32, usize)> + '_ {
+        self.part_ids
+            .iter()
+            .zip(&self.part_slots)
+            .map(|(&id, &s)| (id, s as usize))
+    }
+
     /// `A_{P+i, P+j}` of the overlapping block.
     pub fn dense(&self, i: usize, j: usize) -> f64 {
         let k = self.layout.overlapping as usize;
@@ -349,66 +385,65 @@ impl CellAccumulator {
 
     /// The sampled partitions in increasing index order.
     pub fn partitions(&self) -> impl ExactSizeIterator<Item = PartitionMoments<'_>> + '_ {
-        let (k, c, stride) = (
-            self.layout.overlapping as usize,
-            self.color.channels(),
-            self.stride(),
-        );
-        self.part_ids.iter().enumerate().map(move |(slot, &id)| {
-            let d = &self.part_data[slot * stride..(slot + 1) * stride];
-            PartitionMoments {
-                id,
-                count: self.part_counts[slot],
-                diag: d[0],
-                cross: &d[1..1 + k],
-                b: &d[1 + k..1 + k + c],
-            }
-        })
+        self.sorted_slots()
+            .map(move |(id, slot)| self.moments(id, slot))
     }
 
     /// Moments of partition `id`, if it was sampled.
     pub fn partition(&self, id: u32) -> Option<PartitionMoments<'_>> {
-        let slot = self.part_ids.binary_search(&id).ok()?;
-        self.partitions().nth(slot)
+        let i = self.part_ids.binary_search(&id).ok()?;
+        Some(self.moments(id, self.part_slots[i] as usize))
     }
 
+    /// Storage slot of partition `id`, appending a zeroed entry the first time it is seen.
+    #[inline]
     fn slot_for(&mut self, id: u32) -> usize {
-        if let Some(&s) = self.slot_map.get(id as usize)
-            && s != u32::MAX
-        {
-            return s as usize;
+        match self.slot_map.get(id as usize) {
+            Some(&s) if s != u32::MAX => return s as usize,
+            Some(_) => {}
+            None if self.last.0 == id => return self.last.1 as usize,
+            None => {}
         }
-        if self.part_ids.get(self.last_slot) == Some(&id) {
-            return self.last_slot;
-        }
+        self.find_or_insert(id)
+    }
+
+    #[cold]
+    fn find_or_insert(&mut self, id: u32) -> usize {
         let slot = match self.part_ids.binary_search(&id) {
-            Ok(s) => s,
-            Err(s) => {
-                let stride = self.stride();
-                self.part_ids.insert(s, id);
-                self.part_counts.insert(s, 0);
-                self.part_data
-                    .splice(s * stride..s * stride, std::iter::repeat_n(0.0, stride));
-                if !self.slot_map.is_empty() {
-                    for (j, &pid) in self.part_ids.iter().enumerate().skip(s) {
-                        self.slot_map[pid as usize] = j as u32;
-                    }
+            Ok(i) => self.part_slots[i] as usize,
+            Err(i) => {
+                let s = self.part_counts.len();
+                if s == 0 {
+                    // Skip the smallest growth steps of the four lists (allocator calls).
+                    let n = (self.layout.partitions as usize).min(8);
+                    self.part_ids.reserve(n);
+                    self.part_slots.reserve(n);
+                    self.part_counts.reserve(n);
+                    self.part_data.reserve(n * self.stride());
+                }
+                self.part_ids.insert(i, id);
+                self.part_slots.insert(i, s as u32);
+                self.part_counts.push(0);
+                let len = self.part_data.len() + self.stride();
+                self.part_data.resize(len, 0.0);
+                if let Some(m) = self.slot_map.get_mut(id as usize) {
+                    *m = s as u32;
                 }
                 s
             }
         };
-        self.last_slot = slot;
+        self.last = (id, slot as u32);
         slot
     }
 
     fn rebuild_slot_map(&mut self) {
         if !self.slot_map.is_empty() {
             self.slot_map.fill(u32::MAX);
-            for (j, &pid) in self.part_ids.iter().enumerate() {
-                self.slot_map[pid as usize] = j as u32;
+            for (&id, &s) in self.part_ids.iter().zip(&self.part_slots) {
+                self.slot_map[id as usize] = s;
             }
         }
-        self.last_slot = 0;
+        self.last = (u32::MAX, 0);
     }
 
     /// Adds one training sample with weight `weight` (see [`training_weight`]) and RGB value
@@ -459,14 +494,40 @@ impl CellAccumulator {
         value: [f64; CHANNELS],
         s: &CvSample<'_>,
     ) -> Result<(), SampleRejection> {
-        let k = self.layout.overlapping as usize;
-        if s.overlapping.len() != k {
+        if s.overlapping.len() != self.layout.overlapping as usize {
             return Err(SampleRejection::WrongComponentCount);
         }
+        // The common layouts get a copy of the body whose slice lengths are constants, so
+        // the loops over components and channels unroll (same arithmetic, same bits).
+        match (s.overlapping.len(), self.color) {
+            (1, ColorMode::Rgb) => {
+                self.add_checked(w, value, s, &s.overlapping[..1], ColorMode::Rgb)
+            }
+            (1, ColorMode::Mono) => {
+                self.add_checked(w, value, s, &s.overlapping[..1], ColorMode::Mono)
+            }
+            (0, c) => self.add_checked(w, value, s, &[], c),
+            (2, c) => self.add_checked(w, value, s, &s.overlapping[..2], c),
+            (_, c) => self.add_checked(w, value, s, s.overlapping, c),
+        }
+    }
+
+    /// The body of [`add`](Self::add) after the component count check; `lam` is
+    /// `s.overlapping`, `color` is `self.color`.
+    #[inline(always)]
+    fn add_checked(
+        &mut self,
+        w: f64,
+        value: [f64; CHANNELS],
+        s: &CvSample<'_>,
+        lam: &[f64],
+        color: ColorMode,
+    ) -> Result<(), SampleRejection> {
+        let k = lam.len();
         if !w.is_finite()
             || !s.pdf.is_finite()
             || value.iter().any(|v| !v.is_finite())
-            || s.overlapping.iter().any(|l| !l.is_finite())
+            || lam.iter().any(|l| !l.is_finite())
             || s.partition.is_some_and(|(_, l)| !l.is_finite())
         {
             return Err(SampleRejection::NonFinite);
@@ -480,7 +541,6 @@ impl CellAccumulator {
         let inv_p = 1.0 / s.pdf;
         // Ratios λ_j/p are recomputed where used (same expression, same bits) rather than
         // stored: no per-sample scratch array to initialise.
-        let lam = s.overlapping;
         let mut max_r = 0.0f64;
         for &l in lam {
             max_r = max_r.max((l * inv_p).abs());
@@ -497,7 +557,7 @@ impl CellAccumulator {
             None => None,
         };
         let y_mono;
-        let y: &[f64] = match self.color {
+        let y: &[f64] = match color {
             ColorMode::Rgb => &value,
             ColorMode::Mono => {
                 y_mono = [(value[0] + value[1] + value[2]) / 3.0];
@@ -525,7 +585,7 @@ impl CellAccumulator {
             }
         }
         if let Some((id, rk)) = part {
-            let stride = self.stride();
+            let stride = 1 + k + c;
             let slot = self.slot_for(id);
             self.part_counts[slot] += 1;
             let d = &mut self.part_data[slot * stride..(slot + 1) * stride];
@@ -561,47 +621,44 @@ impl CellAccumulator {
         if other.part_ids.is_empty() {
             return Ok(());
         }
-        // Merge-join of two sorted partition lists.
+        // Merge-join of two sorted partition lists; the result is stored in index order.
         let stride = self.stride();
         let n = self.part_ids.len() + other.part_ids.len();
         let mut ids = Vec::with_capacity(n);
         let mut counts = Vec::with_capacity(n);
         let mut data = Vec::with_capacity(n * stride);
-        let (mut i, mut j) = (0, 0);
-        while i < self.part_ids.len() || j < other.part_ids.len() {
-            let a = self.part_ids.get(i).copied();
-            let b = other.part_ids.get(j).copied();
-            match (a, b) {
-                (Some(x), Some(y)) if x == y => {
+        let (mut a, mut b) = (
+            self.sorted_slots().peekable(),
+            other.sorted_slots().peekable(),
+        );
+        loop {
+            match (a.peek().copied(), b.peek().copied()) {
+                (Some((x, i)), Some((y, j))) if x == y => {
                     ids.push(x);
                     counts.push(self.part_counts[i] + other.part_counts[j]);
-                    let da = &self.part_data[i * stride..(i + 1) * stride];
-                    let db = &other.part_data[j * stride..(j + 1) * stride];
+                    let (da, db) = (self.entry(i), other.entry(j));
                     data.extend(da.iter().zip(db).map(|(p, q)| p + q));
-                    i += 1;
-                    j += 1;
+                    a.next();
+                    b.next();
                 }
-                (Some(x), Some(y)) if x < y => {
+                (Some((x, i)), y) if y.is_none_or(|(y, _)| x < y) => {
                     ids.push(x);
                     counts.push(self.part_counts[i]);
-                    data.extend_from_slice(&self.part_data[i * stride..(i + 1) * stride]);
-                    i += 1;
+                    data.extend_from_slice(self.entry(i));
+                    a.next();
                 }
-                (Some(x), None) => {
-                    ids.push(x);
-                    counts.push(self.part_counts[i]);
-                    data.extend_from_slice(&self.part_data[i * stride..(i + 1) * stride]);
-                    i += 1;
-                }
-                (_, Some(y)) => {
+                (_, Some((y, j))) => {
                     ids.push(y);
                     counts.push(other.part_counts[j]);
-                    data.extend_from_slice(&other.part_data[j * stride..(j + 1) * stride]);
-                    j += 1;
+                    data.extend_from_slice(other.entry(j));
+                    b.next();
                 }
-                (None, None) => unreachable!("loop condition"),
+                (None, None) => break,
+                (Some(_), None) => unreachable!("taken by the arm above"),
             }
         }
+        drop((a, b));
+        self.part_slots = (0..ids.len() as u32).collect();
         self.part_ids = ids;
         self.part_counts = counts;
         self.part_data = data;
@@ -660,11 +717,10 @@ impl CellAccumulator {
             out.extend_from_slice(&v.to_le_bytes());
         }
         out.extend_from_slice(&(self.part_ids.len() as u32).to_le_bytes());
-        let stride = self.stride();
-        for (slot, id) in self.part_ids.iter().enumerate() {
+        for (id, slot) in self.sorted_slots() {
             out.extend_from_slice(&id.to_le_bytes());
             out.extend_from_slice(&self.part_counts[slot].to_le_bytes());
-            for v in &self.part_data[slot * stride..(slot + 1) * stride] {
+            for v in self.entry(slot) {
                 out.extend_from_slice(&v.to_le_bytes());
             }
         }
@@ -724,6 +780,7 @@ impl CellAccumulator {
         }
         let n = entries as usize;
         acc.part_ids.reserve_exact(n);
+        acc.part_slots.reserve_exact(n);
         acc.part_counts.reserve_exact(n);
         acc.part_data.reserve_exact(n * stride);
         let mut prev: Option<u32> = None;
@@ -735,6 +792,7 @@ impl CellAccumulator {
                 return Err(CellError::BadPartition(at));
             }
             prev = Some(id);
+            acc.part_slots.push(acc.part_ids.len() as u32);
             acc.part_ids.push(id);
             acc.part_counts.push(count);
             acc.part_data.push(r.nonneg_f64()?);
