@@ -368,12 +368,11 @@ impl Grid {
     #[inline]
     pub fn cell(&self, p: Vec3) -> u32 {
         let q = (p - self.lo) * self.scale;
+        // The saturating cast maps NaN and negatives to 0; +∞ is mapped to 0 explicitly
+        // (as before), the rest is clamped to the last cell.
         let c = |v: f32, r: u32| {
-            if v.is_finite() && v > 0.0 {
-                (v as u32).min(r - 1)
-            } else {
-                0
-            }
+            let v = if v < f32::INFINITY { v } else { 0.0 };
+            (v as u32).min(r - 1)
         };
         let (x, y, z) = (
             c(q.x, self.res[0]),
@@ -633,6 +632,8 @@ struct Policy<'c, 't> {
     cv_delta: Vec3,
     /// Cell of the first vertex.
     first_cell: Option<u32>,
+    /// Cell of the current vertex when it is controlled (set by `controls`).
+    cell: Option<u32>,
 }
 
 #[inline]
@@ -726,18 +727,46 @@ impl Policy<'_, '_> {
     }
 
     #[inline]
-    fn cell_of(&self, r: &VertexRecord) -> Option<u32> {
+    fn cell_of(&self, depth: u32, p: Vec3, ns: Vec3) -> Option<u32> {
         match self.ctx.kind {
             Kind::Cms | Kind::PerLight => {
-                Some(self.ctx.grid.cell(r.p) * NORMAL_BINS + normal_bin(r.ns))
+                Some(self.ctx.grid.cell(p) * NORMAL_BINS + normal_bin(ns))
             }
-            Kind::OptimalMis => (r.depth == 0).then_some(self.pixel),
+            Kind::OptimalMis => (depth == 0).then_some(self.pixel),
         }
     }
 }
 
 impl VertexObserver for Policy<'_, '_> {
     const CONTROLS_DIRECT: bool = true;
+
+    /// A vertex is left to `path` (no policy work, none of the extra rays a CV needs) when
+    /// the policy would return its base estimate unchanged and unrecorded: shallower than
+    /// `min_depth`, or in the render phase in a cell without coefficients (`α ≡ 0`, where
+    /// the controlled estimate [Hua eq. 17] is the base one). That needs the base to be the
+    /// job's heuristic; otherwise every vertex goes through the policy.
+    #[inline]
+    fn controls(&mut self, depth: u32, p: Vec3, ns: Vec3) -> bool {
+        let min_depth = self.ctx.min_depth;
+        let cell = if depth == 0 || depth >= min_depth {
+            self.cell_of(depth, p, ns)
+        } else {
+            None
+        };
+        if depth == 0 {
+            self.first_cell = cell;
+        }
+        // Shallower than `min_depth`: not controlled, the base estimate, no training sample.
+        self.cell = cell.filter(|_| depth >= min_depth);
+        if self.ctx.base != self.ctx.st.mis {
+            return true;
+        }
+        match (&self.phase, self.cell) {
+            (_, None) | (Phase::Plain, _) => false,
+            (Phase::Train(_), Some(_)) => true,
+            (Phase::Apply(table), Some(key)) => table.get(key).is_some(),
+        }
+    }
 
     #[inline]
     fn controlled_vertex(&mut self, r: &VertexRecord) -> Vec3 {
@@ -754,16 +783,8 @@ impl VertexObserver for Policy<'_, '_> {
                 *p += s.scale * v;
             }
         }
-        let cell = if r.depth == 0 || r.depth >= self.ctx.min_depth {
-            self.cell_of(r)
-        } else {
-            None
-        };
-        if r.depth == 0 {
-            self.first_cell = cell;
-        }
-        // Shallower than `min_depth`: not controlled, the base estimate, no training sample.
-        let cell = cell.filter(|_| r.depth >= self.ctx.min_depth);
+        // Set by `controls` for this vertex.
+        let cell = self.cell;
         let kind = self.ctx.kind;
         let mut out = plain;
         match (&mut self.phase, cell) {
@@ -1340,6 +1361,7 @@ fn run_tile(
                     surrogate: sur,
                     cv_delta: Vec3::ZERO,
                     first_cell: None,
+                    cell: None,
                 };
                 let sample = super::path::trace(rs, st, ray, &mut sampler, &mut pol);
                 rays += u64::from(sample.rays);

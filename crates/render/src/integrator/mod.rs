@@ -403,6 +403,18 @@ pub trait VertexObserver {
     /// [Hua §8]. With `false` (the default) `trace` is exactly the `path` estimator.
     const CONTROLS_DIRECT: bool = false;
 
+    /// Asked at each scattering vertex before its techniques are sampled when
+    /// [`CONTROLS_DIRECT`](Self::CONTROLS_DIRECT) is set: whether the observer controls this
+    /// vertex (`depth`, position `p`, shading normal `ns`). When `false`, [`path::trace`]
+    /// treats the vertex exactly as `path` does (adds its MIS-weighted direct lighting
+    /// itself, traces no extra ray) and reports it with [`vertex`](Self::vertex).
+    ///
+    /// [`path::trace`]: path::trace
+    #[inline]
+    fn controls(&mut self, _depth: u32, _p: Vec3, _ns: Vec3) -> bool {
+        Self::CONTROLS_DIRECT
+    }
+
     /// Called once per scattering vertex after both techniques were evaluated.
     #[inline]
     fn vertex(&mut self, _record: &VertexRecord) {}

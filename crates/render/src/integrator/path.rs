@@ -26,8 +26,9 @@
 //! Pdfs are solid-angle densities at the shading point.
 //!
 //! An observer with `VertexObserver::CONTROLS_DIRECT` (the CV estimators, `cv.rs`) takes
-//! over the direct lighting of scattering vertices (steps 1–2 for emission found by the
-//! BSDF sample and NEE); `trace` then also traces zero-weight BSDF samples (and stops) and
+//! over the direct lighting of the scattering vertices it controls (`VertexObserver::controls`,
+//! asked per vertex; steps 1–2 for emission found by the BSDF sample and NEE); `trace` then
+//! also traces zero-weight BSDF samples (and stops) and
 //! the shadow rays of zero-valued NEE samples with `p_bsdf > 0`, so every technique's pdf
 //! is known for every sample [Hua §8]. With the default observer nothing changes: `path`
 //! results are bit-identical.
@@ -152,6 +153,9 @@ pub fn trace<O: VertexObserver>(
         if depth.saturating_add(1) >= max_depth {
             break;
         }
+        // Whether the observer owns this vertex's direct lighting (needs every technique's
+        // pdf, [Hua §8]); an uncontrolled vertex is exactly `path`'s.
+        let controls = O::CONTROLS_DIRECT && observer.controls(depth, h.p, h.ns);
         let frame = Frame::from_normal(h.ns);
         let wo = frame.to_local(-ray.d);
 
@@ -190,7 +194,7 @@ pub fn trace<O: VertexObserver>(
             let mut value = Vec3::ZERO;
             let mut visible = false;
             let contributes = f != Vec3::ZERO && ls.radiance != Vec3::ZERO;
-            if contributes || (O::CONTROLS_DIRECT && pdf_bsdf > 0.0) {
+            if contributes || (controls && pdf_bsdf > 0.0) {
                 let shadow = if ls.dist.is_finite() {
                     h.spawn_ray_to(h.p + ls.wi * ls.dist)
                 } else {
@@ -204,7 +208,7 @@ pub fn trace<O: VertexObserver>(
                     }
                 }
             }
-            if !O::CONTROLS_DIRECT && value != Vec3::ZERO {
+            if !controls && value != Vec3::ZERO {
                 let w = if ls.delta {
                     1.0
                 } else {
@@ -234,7 +238,7 @@ pub fn trace<O: VertexObserver>(
 
         // ---- BSDF sampling ----
         let Some(bs) = bsdf_sample else {
-            report(observer, &mut radiance, &vertex);
+            report(observer, controls, &mut radiance, &vertex);
             break;
         };
         let wi = frame.to_world(bs.wi);
@@ -245,7 +249,7 @@ pub fn trace<O: VertexObserver>(
         let beta_max = beta.max_element();
         let mut alive = beta_max > 0.0 && beta.is_finite();
         // A CV needs the pdfs of a zero-weight BSDF sample too: trace it, then stop.
-        let zero_weight_trace = O::CONTROLS_DIRECT && !alive && beta == Vec3::ZERO;
+        let zero_weight_trace = controls && !alive && beta == Vec3::ZERO;
         let mut rr_q = 1.0;
         if alive && depth as i64 >= i64::from(st.rr_depth) {
             rr_q = beta_max.min(0.95);
@@ -272,7 +276,7 @@ pub fn trace<O: VertexObserver>(
                 bsdf: Some(tech),
                 ..vertex
             };
-            report(observer, &mut radiance, &vertex);
+            report(observer, controls, &mut radiance, &vertex);
             break;
         }
 
@@ -286,7 +290,7 @@ pub fn trace<O: VertexObserver>(
                 tech.emitted = lights.env_radiance(wi);
                 tech.hit_light = lights.env_light();
                 if !bs.delta
-                    && (O::CONTROLS_DIRECT || tech.emitted != Vec3::ZERO)
+                    && (controls || tech.emitted != Vec3::ZERO)
                     && let Some(l) = lights.env_light()
                 {
                     tech.pdf_light = lights.selection_pmf(l) * lights.pdf_env(wi);
@@ -303,7 +307,7 @@ pub fn trace<O: VertexObserver>(
                 }
             }
         }
-        if !O::CONTROLS_DIRECT && tech.emitted != Vec3::ZERO {
+        if !controls && tech.emitted != Vec3::ZERO {
             let w = if bs.delta {
                 1.0
             } else {
@@ -315,7 +319,7 @@ pub fn trace<O: VertexObserver>(
             bsdf: Some(tech),
             ..vertex
         };
-        report(observer, &mut radiance, &vertex);
+        report(observer, controls, &mut radiance, &vertex);
         if zero_weight_trace {
             break;
         }
@@ -330,8 +334,13 @@ pub fn trace<O: VertexObserver>(
 
 /// Hands a vertex record to the observer; a controlling observer's contribution is added.
 #[inline]
-fn report<O: VertexObserver>(observer: &mut O, radiance: &mut Vec3, record: &VertexRecord) {
-    if O::CONTROLS_DIRECT {
+fn report<O: VertexObserver>(
+    observer: &mut O,
+    controls: bool,
+    radiance: &mut Vec3,
+    record: &VertexRecord,
+) {
+    if controls {
         *radiance += observer.controlled_vertex(record);
     } else {
         observer.vertex(record);
