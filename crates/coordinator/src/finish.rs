@@ -292,7 +292,7 @@ async fn rel_mse_through(
     let r = job.resolved;
     tokio::task::spawn_blocking(move || {
         let mut acc = ImageAccumulator::new(r.width, r.height);
-        for t in decode_all(&blobs, max_pixels)? {
+        for t in decode_parallel(&blobs, max_pixels)? {
             acc.add(&t)
                 .map_err(|e| FinishError::Corrupt(e.to_string()))?;
         }
@@ -314,22 +314,15 @@ fn estimator_of(job: &JobRow) -> Result<Option<PhasedEstimator>, FinishError> {
     Ok(spec.estimator.phased())
 }
 
-/// [`decode_all`] on up to `threads` threads (results in order).
-fn decode_parallel(
-    blobs: &[Vec<u8>],
-    max_pixels: usize,
-    threads: usize,
-) -> Result<Vec<TileResult>, FinishError> {
-    cv::map_ordered(blobs, threads, |b| {
-        frame::decode(b, max_pixels).map_err(|e| FinishError::Corrupt(e.to_string()))
-    })
+/// A stored result frame (validated at upload: a failure here means a corrupt store).
+fn decode_stored(blob: &[u8], max_pixels: usize) -> Result<TileResult, FinishError> {
+    frame::decode(blob, max_pixels).map_err(|e| FinishError::Corrupt(e.to_string()))
 }
 
-fn decode_all(blobs: &[Vec<u8>], max_pixels: usize) -> Result<Vec<TileResult>, FinishError> {
-    blobs
-        .iter()
-        .map(|b| frame::decode(b, max_pixels).map_err(|e| FinishError::Corrupt(e.to_string())))
-        .collect()
+/// [`decode_stored`] of every blob on all cores, results in order.
+fn decode_parallel(blobs: &[Vec<u8>], max_pixels: usize) -> Result<Vec<TileResult>, FinishError> {
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    cv::map_ordered(blobs, threads, |b| decode_stored(b, max_pixels))
 }
 
 /// The barrier after `phase` (a surrogate or train phase of a CV job).
@@ -376,7 +369,7 @@ async fn barrier(state: &AppState, job: &JobRow, phase: &PhaseRow) -> Result<Adv
         let corrupt = |e: cv::CvError| FinishError::Corrupt(e.to_string());
         match kind {
             PhaseKind::Surrogate => {
-                let tiles = decode_parallel(&blobs, max_pixels, threads)?;
+                let tiles = decode_parallel(&blobs, max_pixels)?;
                 let blob = cv::surrogate_blob(&resolved, &tiles).map_err(corrupt)?;
                 let stats = BarrierStats {
                     seconds: t0.elapsed().as_secs_f64(),
@@ -452,8 +445,7 @@ fn merge_stored(
         .map(|t| match t {
             StoredTable::Table(b) => Ok(b),
             StoredTable::Frame(f) => {
-                let tile = frame::decode(&f, max_pixels)
-                    .map_err(|e| FinishError::Corrupt(e.to_string()))?;
+                let tile = decode_stored(&f, max_pixels)?;
                 match <[_; 1]>::try_from(tile.cells) {
                     Ok([block]) => Ok(block.data),
                     Err(c) => Err(corrupt(cv::CvError::BlockCount(c.len()))),
@@ -520,9 +512,8 @@ fn build_outputs(
     phases: &[PhaseRow],
 ) -> Result<[Vec<u8>; 3], FinishError> {
     let r = &job.resolved;
-    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     // Decoded on all cores, summed in canonical order (the bits do not depend on threads).
-    let tiles = decode_parallel(blobs, max_pixels, threads)?;
+    let tiles = decode_parallel(blobs, max_pixels)?;
     let mut acc = ImageAccumulator::new(r.width, r.height);
     for tile in &tiles {
         acc.add(tile)

@@ -226,11 +226,10 @@ fn invalid_cells(message: impl Into<String>) -> AppError {
     AppError::unprocessable("invalid_cells", message, None)
 }
 
-/// Checks the cell blocks of an upload against its phase and the job's estimator; returns
-/// the layout signature of a train block (to record on the phase when it is the first).
 /// Checks a result's cell block against its phase: none outside `train`; in `train` one
-/// valid table of the job's layout. Returns the table's layout signature and the decoded
-/// table for a `train` result, `None` for the other phases.
+/// valid table of the job's layout. Returns the table's layout signature (to record on the
+/// phase when it is the first) and the decoded table for a `train` result, `None` for the
+/// other phases.
 async fn check_cells(
     st: &AppState,
     task: &TaskRow,
