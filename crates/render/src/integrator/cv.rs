@@ -97,9 +97,7 @@ use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::{
-    Estimator, NoObserver, RenderError, RenderScene, RenderSettings, VertexObserver, VertexRecord,
-};
+use super::{Estimator, RenderError, RenderScene, RenderSettings, VertexObserver, VertexRecord};
 use crate::film::{Film, FilmLayer};
 use crate::light::Lights;
 use crate::sampler::Sampler;
@@ -1186,6 +1184,14 @@ struct PhaseInput<'a> {
 /// leaving cores idle before the barrier.
 pub const BAND_ROWS: u32 = 16;
 
+/// Rows of the bands of a surrogate or render tile. Their pixels do not depend on the bands
+/// (each pixel sums its own samples in index order) and they carry no cells, so the bands can
+/// be as fine as load balance wants: a worker renders one tile at a time, and with
+/// [`BAND_ROWS`]-row bands the two bands of a 32-pixel tile left one core idle while the other
+/// finished (the farm's render phase ran ≈ 8 % longer than the in-process one, whose tiles
+/// keep every core busy; `docs/bench/farm.md` §7).
+pub const PIXEL_BAND_ROWS: u32 = 2;
+
 /// A tile's outputs joined from its bands (row-major over the tile, like [`TileOut`]), with
 /// each band's cells in band order.
 struct Banded {
@@ -1197,19 +1203,24 @@ struct Banded {
 }
 
 impl Banded {
-    /// Renders `tile` as bands of [`BAND_ROWS`] full-width rows in parallel.
+    /// Renders `tile` as bands of full-width rows in parallel: [`BAND_ROWS`] rows for a
+    /// training tile (its table depends on them), [`PIXEL_BAND_ROWS`] otherwise.
     fn run(
         ctx: &CvContext<'_>,
         tile: TileRect,
         samples: Range<u32>,
         input: PhaseInput<'_>,
     ) -> Self {
-        let bands: Vec<TileRect> = (0..tile.height.div_ceil(BAND_ROWS))
+        let rows = match input.kind {
+            PhaseKind::Train => BAND_ROWS,
+            PhaseKind::Plain | PhaseKind::Apply => PIXEL_BAND_ROWS,
+        };
+        let bands: Vec<TileRect> = (0..tile.height.div_ceil(rows))
             .map(|b| TileRect {
                 x0: tile.x0,
-                y0: tile.y0 + b * BAND_ROWS,
+                y0: tile.y0 + b * rows,
                 width: tile.width,
-                height: BAND_ROWS.min(tile.height - b * BAND_ROWS),
+                height: rows.min(tile.height - b * rows),
             })
             .collect();
         let outs: Vec<TileOut> = bands
@@ -1334,11 +1345,9 @@ fn run_tile(
             let sur = surrogate.map(|s| s[pixel as usize]);
             let mut rejected = 0u64;
             for s in samples.clone() {
-                let mut sampler = Sampler::new(st.seed, pixel, s);
-                let u = sampler.next_2d();
-                let ray = rs.camera.ray(Vec2::new(x as f32 + u.x, y as f32 + u.y));
                 if plain_path {
-                    let sample = super::path::trace(rs, st, ray, &mut sampler, &mut NoObserver);
+                    // Exactly `path`'s pixel sample (same sampler state and numbers).
+                    let sample = super::path::sample_pixel(rs, st, x, y, s);
                     rays += u64::from(sample.rays);
                     let px = film.pixel_mut(x, y);
                     if sample.radiance.is_finite() {
@@ -1349,6 +1358,9 @@ fn run_tile(
                     }
                     continue;
                 }
+                let mut sampler = Sampler::new(st.seed, pixel, s);
+                let u = sampler.first_2d();
+                let ray = rs.camera.ray(Vec2::new(x as f32 + u.x, y as f32 + u.y));
                 let phase = match (kind, table) {
                     (PhaseKind::Train, _) => Phase::Train(&mut cells),
                     (PhaseKind::Apply, Some(t)) => Phase::Apply(t),
@@ -1422,7 +1434,8 @@ fn par_tiles<T: Send>(
 
 /// Runs every phase of `settings.estimator` in-process and returns the final film (all
 /// samples of all phases), its stats and the estimator report. Estimators without phases
-/// (`path`, `ocv`) are rendered with [`crate::tile::render_image`] and an empty report.
+/// (`path`, `ocv`) and CV jobs that control no vertex (rendered as `path`) go through
+/// [`crate::tile::render_image`] and get a report without phases.
 /// `progress(done, total)` counts samples over all phases.
 ///
 /// The phases go through [`CvJob`] exactly as on the farm: surrogate and render tiles of
@@ -1436,24 +1449,40 @@ pub fn render_estimator_image(
 ) -> Result<(Film, RenderStats, EstimatorReport), RenderError> {
     let start = Instant::now();
     let rs = scene;
-    let Some(job) = CvJob::new(rs, settings)? else {
-        let (film, stats) = crate::tile::render_image(rs, settings, opts, progress)?;
-        let report = EstimatorReport {
-            estimator: estimator_name(&settings.estimator).to_string(),
-            render_spp: settings.spp,
-            lights: rs.lights.len() as u32,
-            effects: rs
-                .techniques(settings)
-                .into_iter()
-                .map(String::from)
-                .collect(),
-            phases: PhaseTimings {
-                render: stats.seconds,
-                ..PhaseTimings::default()
-            },
-            ..EstimatorReport::default()
-        };
-        return Ok((film, stats, report));
+    let job = CvJob::new(rs, settings)?;
+    // A CV job that controls no vertex (e.g. `cms` at depth 2 with `min_depth` 1) whose base
+    // is the job's heuristic *is* `path`: one render phase with `path`'s bits, as on the farm
+    // ([`PhasedEstimator::phases`]). `path`'s own driver renders it, without the CV driver's
+    // banded tiles and per-tile layers (≈ 4 % of CPU time on colour-lamp at depth 2).
+    let plain = job
+        .as_ref()
+        .is_some_and(|j| !j.controls_any_vertex() && j.ctx.base == settings.mis);
+    let job = match job {
+        Some(j) if !plain => j,
+        _ => {
+            let path_settings = RenderSettings {
+                estimator: Estimator::Path,
+                ..*settings
+            };
+            let st = if plain { &path_settings } else { settings };
+            let (film, stats) = crate::tile::render_image(rs, st, opts, progress)?;
+            let report = EstimatorReport {
+                estimator: estimator_name(&settings.estimator).to_string(),
+                render_spp: settings.spp,
+                lights: rs.lights.len() as u32,
+                effects: rs
+                    .techniques(settings)
+                    .into_iter()
+                    .map(String::from)
+                    .collect(),
+                phases: PhaseTimings {
+                    render: stats.seconds,
+                    ..PhaseTimings::default()
+                },
+                ..EstimatorReport::default()
+            };
+            return Ok((film, stats, report));
+        }
     };
     let ph = job.phases().clone();
     let pool = rayon::ThreadPoolBuilder::new()
