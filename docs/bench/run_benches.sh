@@ -6,7 +6,9 @@
 #
 # Environment: REF_SECONDS (reference render budget, default 45), MAX_SECONDS (per-estimator
 # bench budget, default 30), SPP_SERIES (default 32,64,…,512), SCENES (default: colour-lamp many-lights veach-mis envmap),
-# DEPTHS (default: 2 5), ESTIMATORS (default: path,cms).
+# DEPTHS (default: 2 5), ESTIMATORS (default: path,cms), SEEDS (renders per point, default 3:
+# the error is then the seed-to-seed variance of one render, free of the reference's own noise;
+# the reference only normalises).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 BIN=${BIN:-target/release/cvfarm}
@@ -17,6 +19,7 @@ SPP_SERIES=${SPP_SERIES:-32,64,128,256,512}
 SCENES=${SCENES:-"colour-lamp many-lights veach-mis envmap"}
 DEPTHS=${DEPTHS:-"2 5"}
 ESTIMATORS=${ESTIMATORS:-path,cms}
+SEEDS=${SEEDS:-3}
 mkdir -p out/bench-ref
 for scene in $SCENES; do
   for d in $DEPTHS; do
@@ -26,6 +29,7 @@ for scene in $SCENES; do
         --time-budget "$REF_SECONDS" -o "$ref" --stats "${ref%.exr}.json"
     fi
     "$BIN" bench "scenes/$scene/scene.json" --estimators "$ESTIMATORS" --max-depth "$d" \
-      --reference "$ref" --max-seconds "$MAX_SECONDS" --spp-series "$SPP_SERIES" --out "docs/bench/${scene}_d${d}"
+      --reference "$ref" --max-seconds "$MAX_SECONDS" --spp-series "$SPP_SERIES" --seeds "$SEEDS" \
+      --out "docs/bench/${scene}_d${d}"
   done
 done

@@ -9,7 +9,12 @@
 //! which is far less disturbed than wall time when other jobs share the machine; `wall` is
 //! the alternative. Scene preparation is excluded (it is the same for all).
 //! Without `--reference` the error is estimated from the per-pixel variance of the mean
-//! (`estimators::metrics::estimated_rel_mse`; exact in expectation for unbiased estimators).
+//! (`estimators::metrics::estimated_rel_mse`; exact in expectation for unbiased estimators
+//! with independent samples). With `--seeds N` (N ≥ 2) every point renders N seeds and the
+//! error is the seed-to-seed variance of one render (`estimators::metrics::seed_variance_error`):
+//! no reference noise in it — a reference's own error is a floor under every figure measured
+//! against it, which pulls speedups toward 1 — and right for the Sobol sampler, whose samples
+//! within a pixel are not independent; the reference, if given, only normalises.
 //!
 //! Outputs in `--out DIR`:
 //! - `bench.csv`: `estimator,spp,seconds,relmse,mse,wall_seconds,cpu_seconds`, one row per run;
@@ -29,6 +34,7 @@
 //! | `--max-seconds S` | 60 | render-time budget per estimator (the series stops before exceeding it) |
 //! | `--spp-series LIST` | 1,2,4,… | explicit sample counts |
 //! | `--clock C` | `cpu` | `cpu` (process CPU seconds) or `wall` for the comparisons |
+//! | `--seeds N` | 1 | renders per point (seeds `seed…seed+N−1`); N ≥ 2: seed-variance error, mean seconds |
 //! | `--seed`, `--threads`, `--res`, `--tile-size`, `-D` | as `render` | |
 //!
 //! ```text
@@ -74,9 +80,14 @@ pub struct BenchArgs {
     /// Clock of the comparisons: process CPU seconds (robust on a shared machine) or wall.
     #[arg(long, value_enum, default_value_t = Clock::Cpu)]
     pub clock: Clock,
-    /// Sampler seed.
+    /// Sampler seed (the first of `--seeds`).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Renders per point of a series, with seeds `seed, seed+1, …`; from 2 on, the error is
+    /// the seed-to-seed variance of one render (reference-free numerator; the reference, if
+    /// any, only normalises) and the seconds are the renders' mean.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=64))]
+    pub seeds: u32,
     /// Render threads (0 = all cores).
     #[arg(long, default_value_t = 0)]
     pub threads: usize,
@@ -110,6 +121,14 @@ pub fn process_cpu_seconds() -> Option<f64> {
     let ticks = |i: usize| f.get(i).and_then(|v| v.parse::<f64>().ok());
     // USER_HZ, fixed at 100 for the /proc interface on Linux.
     Some((ticks(11)? + ticks(12)?) / 100.0)
+}
+
+/// The 1-minute load average from `/proc/loadavg` as printed there ("unknown" elsewhere).
+fn load_average() -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .ok()
+        .and_then(|l| l.split_whitespace().next().map(str::to_owned))
+        .unwrap_or_else(|| "unknown".into())
 }
 
 /// One render of the series.
@@ -450,6 +469,7 @@ pub fn run(args: &BenchArgs) -> Result<ExitCode> {
     } else {
         args.spp_series.clone()
     };
+    let load_start = load_average();
     let mut all = Vec::new();
     for (label, est) in &items {
         let st = RenderSettings {
@@ -460,46 +480,70 @@ pub fn run(args: &BenchArgs) -> Result<ExitCode> {
         let mut total = 0.0;
         for &spp in &series_spp {
             if let Some(last) = runs.last() {
-                let predicted = last.wall_seconds * f64::from(spp) / f64::from(last.spp);
+                let predicted = last.wall_seconds * f64::from(spp) / f64::from(last.spp)
+                    * f64::from(args.seeds);
                 if total + predicted > args.max_seconds {
                     break;
                 }
             }
-            let cpu0 = process_cpu_seconds();
-            let r =
-                local_render::render_spp(&rs, &RenderSettings { spp, ..st }, &options, &|_, _| {})
-                    .with_context(|| format!("rendering {label} at {spp} spp"))?;
-            let mean: Vec<f32> = r.film.mean_image().into_iter().flatten().collect();
-            let (relmse, mse) = match &reference {
-                Some(rf) => {
-                    let e = estimators::metrics::compare(&mean, rf);
-                    (e.rel_mse, e.mse)
+            let (mut means, mut wall, mut cpu) = (Vec::new(), 0.0, 0.0);
+            let mut last_var: Vec<f32> = Vec::new();
+            for k in 0..args.seeds {
+                let cpu0 = process_cpu_seconds();
+                let seed = args.seed.wrapping_add(u64::from(k));
+                let r = local_render::render_spp(
+                    &rs,
+                    &RenderSettings { spp, seed, ..st },
+                    &options,
+                    &|_, _| {},
+                )
+                .with_context(|| format!("rendering {label} at {spp} spp, seed {seed}"))?;
+                cpu += match (cpu0, process_cpu_seconds()) {
+                    (Some(a), Some(b)) => b - a,
+                    _ => f64::NAN,
+                };
+                wall += r.stats.seconds;
+                means.push(
+                    r.film
+                        .mean_image()
+                        .into_iter()
+                        .flatten()
+                        .collect::<Vec<f32>>(),
+                );
+                if args.seeds == 1 && reference.is_none() {
+                    last_var = r.film.variance_image().into_iter().flatten().collect();
                 }
-                None => {
-                    let var: Vec<f32> = r.film.variance_image().into_iter().flatten().collect();
-                    let rel =
-                        estimators::metrics::estimated_rel_mse(&mean, &var).unwrap_or(f64::NAN);
-                    let mse =
-                        var.iter().map(|v| f64::from(*v)).sum::<f64>() / var.len().max(1) as f64;
-                    (rel, mse)
+            }
+            let n = f64::from(args.seeds);
+            let (wall, cpu) = (wall / n, cpu / n);
+            let (relmse, mse) = if args.seeds >= 2 {
+                let views: Vec<&[f32]> = means.iter().map(Vec::as_slice).collect();
+                estimators::metrics::seed_variance_error(&views, reference.as_deref())
+                    .map_or((f64::NAN, f64::NAN), |e| (e.rel_mse, e.mse))
+            } else {
+                match &reference {
+                    Some(rf) => {
+                        let e = estimators::metrics::compare(&means[0], rf);
+                        (e.rel_mse, e.mse)
+                    }
+                    None => {
+                        let rel = estimators::metrics::estimated_rel_mse(&means[0], &last_var)
+                            .unwrap_or(f64::NAN);
+                        let mse = last_var.iter().map(|v| f64::from(*v)).sum::<f64>()
+                            / last_var.len().max(1) as f64;
+                        (rel, mse)
+                    }
                 }
             };
-            let cpu = match (cpu0, process_cpu_seconds()) {
-                (Some(a), Some(b)) => b - a,
-                _ => f64::NAN,
-            };
-            total += r.stats.seconds;
-            eprintln!(
-                "bench {label}: {spp} spp in {:.2} s, relMSE {relmse:.3e}",
-                r.stats.seconds
-            );
+            total += wall * n;
+            eprintln!("bench {label}: {spp} spp in {wall:.2} s, relMSE {relmse:.3e}");
             runs.push(Run {
                 spp,
                 seconds: match args.clock {
                     Clock::Cpu if cpu > 0.0 => cpu,
-                    _ => r.stats.seconds,
+                    _ => wall,
                 },
-                wall_seconds: r.stats.seconds,
+                wall_seconds: wall,
                 cpu_seconds: cpu,
                 relmse,
                 mse,
@@ -527,6 +571,17 @@ pub fn run(args: &BenchArgs) -> Result<ExitCode> {
             args.seed
         ),
         match &args.reference {
+            _ if args.seeds >= 2 => format!(
+                "error = the seed-to-seed variance of one render over {} seeds ({}…): the expected squared error of an unbiased estimator, with no reference noise in it (valid for the Sobol sampler: seeds are independent randomisations); normalised by {} (relMSE ε = 0.01); seconds are the renders' mean",
+                args.seeds,
+                args.seed,
+                args.reference
+                    .as_ref()
+                    .map_or("the seeds' mean".to_string(), |p| format!(
+                        "the reference `{}`",
+                        p.display()
+                    ))
+            ),
             Some(p) => format!(
                 "error against the reference `{}` (relMSE ε = 0.01); the reference's own relMSE estimated from its variance layer (a noise floor under every figure; the estimate assumes independent samples, so it overstates the error of a Sobol-sampled reference) is {}",
                 p.display(),
@@ -537,14 +592,16 @@ pub fn run(args: &BenchArgs) -> Result<ExitCode> {
             None => "no reference: relMSE estimated from the per-pixel variance of the mean".into(),
         },
         format!(
-            "seconds = {} of rendering (scene preparation excluded); measured on a loaded, shared 2-core machine (other builds and tests running concurrently): CPU time is much steadier than wall time there, but cache and memory contention still move times, and with them equal-time speedups and overheads, by up to tens of percent",
+            "seconds = {} of rendering (scene preparation excluded); load average (1 min) at the start {}, at the end {}: where other jobs share the machine CPU time is much steadier than wall time, but cache and memory contention still move times, and with them equal-time speedups and overheads",
             match args.clock {
                 Clock::Cpu => "process CPU seconds (all render threads)",
                 Clock::Wall => "wall-clock seconds",
-            }
+            },
+            load_start,
+            load_average(),
         ),
         format!(
-            "rerun: `cvfarm bench {} --estimators {} --max-depth {} --max-seconds {} --clock {}{}{}`",
+            "rerun: `cvfarm bench {} --estimators {} --max-depth {} --max-seconds {} --clock {} --seed {} --seeds {}{}{}{}`",
             args.scene.display(),
             items
                 .iter()
@@ -557,6 +614,11 @@ pub fn run(args: &BenchArgs) -> Result<ExitCode> {
                 Clock::Cpu => "cpu",
                 Clock::Wall => "wall",
             },
+            args.seed,
+            args.seeds,
+            args.res
+                .map(|r| format!(" --res {}x{}", r.width, r.height))
+                .unwrap_or_default(),
             if args.spp_series.is_empty() {
                 String::new()
             } else {

@@ -205,7 +205,7 @@ fn tiny_bench_writes_csv_markdown_and_svg() {
         md.contains("equal-time speedup") && md.contains("| ocv:spe=4 |"),
         "{md}"
     );
-    assert!(md.contains("loaded"), "machine-load note missing");
+    assert!(md.contains("load average"), "machine-load note missing");
     let svg = std::fs::read_to_string(out.join("bench.svg")).unwrap();
     assert!(
         svg.starts_with("<svg") && svg.matches("<polyline").count() == 2,
@@ -228,4 +228,40 @@ fn tiny_bench_writes_csv_markdown_and_svg() {
     ]));
     let csv = std::fs::read_to_string(out2.join("bench.csv")).unwrap();
     assert_eq!(csv.lines().count(), 5, "path is always the baseline: {csv}");
+
+    // With `--seeds 3`: the seed-to-seed variance of one render, falling with samples.
+    let out3 = dir.join("seeds");
+    ok(&run(&[
+        "bench",
+        s(&sc),
+        "--res",
+        "24x18",
+        "--estimators",
+        "path",
+        "--spp-series",
+        "2,32",
+        "--seeds",
+        "3",
+        "--reference",
+        s(&reference),
+        "--out",
+        s(&out3),
+    ]));
+    let csv = std::fs::read_to_string(out3.join("bench.csv")).unwrap();
+    let e: Vec<f64> = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').nth(3).unwrap().parse().unwrap())
+        .collect();
+    assert_eq!(e.len(), 2, "{csv}");
+    assert!(e.iter().all(|x| x.is_finite() && *x > 0.0), "{csv}");
+    assert!(e[1] < e[0], "{csv}");
+    let md = std::fs::read_to_string(out3.join("bench.md")).unwrap();
+    assert!(
+        md.contains("seed-to-seed variance") && md.contains("--seeds 3"),
+        "{md}"
+    );
+    // Fewer than one seed is a usage error.
+    let bad = run(&["bench", s(&sc), "--seeds", "0", "--out", s(&out3)]);
+    assert!(!bad.status.success());
 }

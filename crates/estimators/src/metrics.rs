@@ -94,9 +94,139 @@ pub fn estimated_rel_mse(estimate: &[f32], variance: &[f32]) -> Option<f64> {
     (n > 0).then(|| sum / n as f64)
 }
 
+/// relMSE of **one** render estimated from `N ≥ 2` independent renders of the same job with
+/// different seeds (DESIGN §6), with no reference noise in the numerator.
+///
+/// Per entry, the unbiased sample variance across the renders, `s² = Σ_i (x_i − x̄)²/(N − 1)`,
+/// is an unbiased estimate of the variance of one render, which for an unbiased estimator is
+/// its expected squared error. The result is the mean over entries of `s² / (r² + ε)` with
+/// `r` the `reference` entry when given (only the normaliser: its noise does not add to the
+/// error, unlike [`compare`] against a reference whose own error is a floor under every
+/// figure), else `x̄`; and the mean of `s²` as the MSE. Unlike [`estimated_rel_mse`] it needs
+/// no independence between the samples *within* a render, so it is right for stratified or
+/// quasi-Monte Carlo samplers (independent seeds are independent randomisations). Entries
+/// where any render or the reference is non-finite are skipped. `None` when fewer than two
+/// renders are given, the lengths differ or no entry is finite.
+pub fn seed_variance_error(renders: &[&[f32]], reference: Option<&[f32]>) -> Option<ErrorStats> {
+    let first = renders.first()?;
+    let len = first.len();
+    if renders.len() < 2
+        || renders.iter().any(|r| r.len() != len)
+        || reference.is_some_and(|r| r.len() != len)
+    {
+        return None;
+    }
+    let n = renders.len() as f64;
+    let (mut rel, mut sq, mut count, mut non_finite) = (0.0f64, 0.0f64, 0usize, 0usize);
+    for e in 0..len {
+        if renders.iter().any(|r| !r[e].is_finite()) {
+            non_finite += 1;
+            continue;
+        }
+        let mean = renders.iter().map(|r| f64::from(r[e])).sum::<f64>() / n;
+        let r = match reference {
+            Some(rf) if rf[e].is_finite() => f64::from(rf[e]),
+            Some(_) => continue,
+            None => mean,
+        };
+        let var = renders
+            .iter()
+            .map(|x| (f64::from(x[e]) - mean).powi(2))
+            .sum::<f64>()
+            / (n - 1.0);
+        rel += var / (r * r + REL_MSE_EPSILON);
+        sq += var;
+        count += 1;
+    }
+    (count > 0).then(|| ErrorStats {
+        rel_mse: rel / count as f64,
+        mse: sq / count as f64,
+        non_finite,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A small deterministic normal generator (xorshift64* + Box–Muller) for the tests.
+    struct Normal(u64);
+
+    impl Normal {
+        fn uniform(&mut self) -> f64 {
+            self.0 ^= self.0 >> 12;
+            self.0 ^= self.0 << 25;
+            self.0 ^= self.0 >> 27;
+            ((self.0.wrapping_mul(0x2545_f491_4f6c_dd1d) >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+        }
+        fn sample(&mut self) -> f64 {
+            let (u, v) = (self.uniform(), self.uniform());
+            (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+        }
+    }
+
+    #[test]
+    fn seed_variance_error_estimates_the_error_of_one_render() {
+        // Renders = truth + independent N(0, σ²) noise: the expected relMSE of one render is
+        // mean σ²/(r² + ε); the estimate is a weighted mean of χ²_{N−1}/(N−1) variables.
+        let (m, n) = (20_000usize, 4usize);
+        let truth: Vec<f32> = (0..m).map(|i| 0.2 + (i % 7) as f32 * 0.3).collect();
+        let sigma = |i: usize| 0.05 + (i % 5) as f64 * 0.02;
+        let mut g = Normal(0x1234_5678_9abc_def1);
+        let renders: Vec<Vec<f32>> = (0..n)
+            .map(|_| {
+                (0..m)
+                    .map(|i| (f64::from(truth[i]) + sigma(i) * g.sample()) as f32)
+                    .collect()
+            })
+            .collect();
+        let views: Vec<&[f32]> = renders.iter().map(Vec::as_slice).collect();
+        let w: Vec<f64> = (0..m)
+            .map(|i| sigma(i).powi(2) / (f64::from(truth[i]).powi(2) + REL_MSE_EPSILON))
+            .collect();
+        let expected = w.iter().sum::<f64>() / m as f64;
+        let est = seed_variance_error(&views, Some(&truth)).unwrap();
+        // Standard deviation of a weighted mean of χ²_{N−1}/(N−1) variables, relative to its
+        // expectation: sqrt(2/(N−1)) · sqrt(Σw²)/Σw. Five of them.
+        let rel_sd = (2.0 / (n - 1) as f64).sqrt() * w.iter().map(|x| x * x).sum::<f64>().sqrt()
+            / w.iter().sum::<f64>();
+        let tol = 5.0 * rel_sd;
+        assert!(
+            (est.rel_mse / expected - 1.0).abs() < tol,
+            "{} vs {expected} (tol {tol})",
+            est.rel_mse
+        );
+        // Against a noisy reference the classic comparison pays the reference's error too;
+        // the seed variance does not depend on the reference's noise beyond the normaliser.
+        let noisy_ref = &renders[0];
+        let classic = compare(&renders[1], noisy_ref).rel_mse;
+        assert!(classic > 1.6 * expected, "{classic} vs {expected}");
+        // Without a reference the normaliser is the renders' mean (the numerator is the same).
+        let mean: Vec<f32> = (0..m)
+            .map(|i| (renders.iter().map(|r| f64::from(r[i])).sum::<f64>() / n as f64) as f32)
+            .collect();
+        let free = seed_variance_error(&views, None).unwrap();
+        let with_mean = seed_variance_error(&views, Some(&mean)).unwrap();
+        assert_eq!(free.mse, est.mse);
+        assert!((free.rel_mse / with_mean.rel_mse - 1.0).abs() < 1e-5);
+    }
+
+    #[test]
+    fn seed_variance_error_needs_two_finite_renders_of_one_size() {
+        let a = [1.0f32, 2.0];
+        let b = [1.0f32, 2.5];
+        assert!(seed_variance_error(&[&a], None).is_none());
+        assert!(seed_variance_error(&[&a, &[1.0]], None).is_none());
+        assert!(seed_variance_error(&[&a, &b], Some(&[1.0])).is_none());
+        let e = seed_variance_error(&[&a, &b], None).unwrap();
+        // Entry 0: no spread; entry 1: s² = 0.125 around 2.25.
+        assert!((e.mse - 0.0625).abs() < 1e-12);
+        assert!((e.rel_mse - 0.125 / (2.25 * 2.25 + 0.01) / 2.0).abs() < 1e-12);
+        let nan = [f32::NAN, 2.0];
+        let e = seed_variance_error(&[&a, &nan], None).unwrap();
+        assert_eq!(e.non_finite, 1);
+        assert!(seed_variance_error(&[&nan, &[f32::INFINITY, f32::NAN]], None).is_none());
+    }
 
     #[test]
     fn estimated_rel_mse_is_variance_over_value_squared() {
