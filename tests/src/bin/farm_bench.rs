@@ -4,11 +4,14 @@
 //!    task and upload a valid (all-zero) frame as fast as they can; reports leases/s
 //!    (lease + upload round trips) and the finishing time (assembly of every block).
 //! 2. **Farm overhead** (`--only overhead [--estimator cms] [--scene many-lights] [--res 256]
-//!    [--spp 64] [--tile 32] [--repeats 3] [--workers 2] [--slots 1] [--poll-ms MS]`): the
-//!    same job rendered in-process (what `cvfarm render` does: `render_estimator_image` with 2
-//!    threads, EXR encoded) and by a farm of `--workers` real workers × `--slots` slots on
-//!    loopback; reports both wall times (best of each) and the overhead. The job's status is
-//!    polled at a quarter of its ETA (5–100 ms) unless `--poll-ms` fixes the interval.
+//!    [--spp 64] [--tile 32] [--repeats 3] [--workers 2] [--slots 1] [--poll-ms MS]
+//!    [--side local|farm]`): the same job rendered in-process (what `cvfarm render` does:
+//!    `render_estimator_image` with 2 threads, EXR encoded) and by a farm of `--workers` real
+//!    workers × `--slots` slots on loopback, `--repeats` times as pairs run back to back in
+//!    alternating order; reports every pair's wall and CPU seconds (stderr), the median of the
+//!    pairs' ratios (the figure that survives a machine whose speed drifts) and best vs best.
+//!    The job's status is polled at a quarter of its ETA (5–100 ms) unless `--poll-ms` fixes
+//!    the interval. `--side` runs one side only (to profile it).
 //! 3. **Merge + solve throughput** (DESIGN §8, "coordinator merge/solve throughput"): the
 //!    coordinator's barrier work on realistic training accumulators. `--sim-workers` threads
 //!    each produce the tables of their share of `--tiles` tiles (`--cells` cells per tile,
@@ -157,10 +160,13 @@ fn overhead(backend: Backend, estimator: &str, scene_name: &str, res: u32, spp: 
         .map(|i| e2e::Worker::start_slots(&testfarm.url(), &format!("w{i}"), slots))
         .collect::<Vec<_>>();
     std::thread::sleep(Duration::from_millis(300)); // workers registered and polling
-    let (mut local, mut farm, mut tasks) = (f64::INFINITY, f64::INFINITY, 0);
-    let (mut local_cpu, mut farm_cpu) = (f64::INFINITY, f64::INFINITY);
-    let (mut phases, mut local_phases) = (String::new(), String::new());
-    for _ in 0..repeats.max(1) {
+    // `--side local|farm` runs one side only (to profile it alone); both by default.
+    let side = std::env::args()
+        .skip_while(|a| a != "--side")
+        .nth(1)
+        .unwrap_or_else(|| "both".into());
+    // One in-process render: (wall s, process CPU s, phase times).
+    let run_local = || {
         let (t0, c0) = (Instant::now(), cpu_time::cpu_seconds());
         let p = worker::tile::Prepared::new(
             &scene_bytes,
@@ -191,24 +197,25 @@ fn overhead(backend: Backend, estimator: &str, scene_name: &str, res: u32, spp: 
             .collect::<Vec<_>>();
         let exr = imageio::encode_exr(res, res, &layers).expect("exr");
         assert!(!exr.is_empty());
-        let t = t0.elapsed().as_secs_f64();
-        if t < local {
-            let ph = &report.phases;
-            local_phases = format!(
-                "prepare {t_prep:.2}, surrogate+denoise {:.2}, train {:.2}, merge+solve {:.2}, render {:.2}",
-                ph.surrogate, ph.train, ph.solve, ph.render
-            );
-        }
-        local = local.min(t);
-        local_cpu = local_cpu.min(cpu_time::cpu_seconds() - c0);
-
+        let ph = &report.phases;
+        let phases = format!(
+            "prepare {t_prep:.2}, surrogate+denoise {:.2}, train {:.2}, merge+solve {:.2}, render {:.2}",
+            ph.surrogate, ph.train, ph.solve, ph.render
+        );
+        (
+            t0.elapsed().as_secs_f64(),
+            cpu_time::cpu_seconds() - c0,
+            phases,
+        )
+    };
+    // One farm job, submit to done: (wall s, process CPU s, phase times, tasks).
+    let run_farm = || {
         let (t0, c0) = (Instant::now(), cpu_time::cpu_seconds());
         let id = client.submit(&spec);
         // Polling is not free: a fixed 5 ms is 200 status requests/s, each a few queries on
-        // the coordinator sharing the 2 cores with the workers (on a loaded machine it looked
-        // like 5-8 % more farm CPU than 100 ms; not confirmed on an idle one). So poll at a
-        // quarter of the job's ETA, between 5 ms (the end of the job is seen within 5 ms) and
-        // 100 ms (`--poll-ms` fixes the interval instead).
+        // the coordinator sharing the 2 cores with the workers. So poll at a quarter of the
+        // job's ETA, between 5 ms (the end of the job is seen within 5 ms) and 100 ms
+        // (`--poll-ms` fixes the interval instead).
         let fixed = arg("--poll-ms", 0) as u64;
         let st = loop {
             let s = client.status(id);
@@ -224,41 +231,96 @@ fn overhead(backend: Backend, estimator: &str, scene_name: &str, res: u32, spp: 
         };
         let t = t0.elapsed().as_secs_f64();
         // The coordinator and both workers run in this process: its CPU time is the farm's.
-        farm_cpu = farm_cpu.min(cpu_time::cpu_seconds() - c0);
+        let cpu = cpu_time::cpu_seconds() - c0;
         assert_eq!(st.state, JobState::Done, "{st:?}");
-        if t < farm {
-            farm = t;
-            let stats = client.stats(id);
-            phases = stats["phases"]
-                .as_array()
-                .into_iter()
-                .flatten()
-                .map(|p| {
-                    let barrier = p["barrier"]["seconds"]
-                        .as_f64()
-                        .map_or(String::new(), |b| format!(" + barrier {b:.2}"));
-                    format!(
-                        "{} {:.2}{barrier}",
-                        p["name"].as_str().unwrap_or("?"),
-                        p["seconds"].as_f64().unwrap_or(0.0)
-                    )
-                })
-                .collect::<Vec<_>>()
-                .join(", ");
-        }
-        tasks = client
-            .stats(id)
+        let stats = client.stats(id);
+        let phases = stats["phases"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .map(|p| {
+                let barrier = p["barrier"]["seconds"]
+                    .as_f64()
+                    .map_or(String::new(), |b| format!(" + barrier {b:.2}"));
+                format!(
+                    "{} {:.2}{barrier}",
+                    p["name"].as_str().unwrap_or("?"),
+                    p["seconds"].as_f64().unwrap_or(0.0)
+                )
+            })
+            .collect::<Vec<_>>()
+            .join(", ");
+        let tasks = stats
             .get("tasks")
             .and_then(serde_json::Value::as_u64)
             .unwrap_or(0);
+        (t, cpu, phases, tasks)
+    };
+    // Repeats alternate the order (local first, then farm first, ...), so a machine whose
+    // speed drifts or that favours the first of two runs biases neither side; each repeat is
+    // a pair run back to back, and the median of the pairs' ratios is the robust figure.
+    let mut pairs: Vec<[(f64, f64); 2]> = Vec::new();
+    let (mut best_local, mut best_farm) = (
+        (f64::INFINITY, String::new()),
+        (f64::INFINITY, String::new()),
+    );
+    let mut tasks = 0;
+    for r in 0..repeats.max(1) {
+        let mut pair = [(f64::NAN, f64::NAN); 2];
+        for first_farm in [r % 2 == 1, r % 2 == 0] {
+            if first_farm && side != "local" {
+                let (t, cpu, phases, n) = run_farm();
+                tasks = n;
+                pair[1] = (t, cpu);
+                if t < best_farm.0 {
+                    best_farm = (t, phases);
+                }
+            } else if !first_farm && side != "farm" {
+                let (t, cpu, phases) = run_local();
+                pair[0] = (t, cpu);
+                if t < best_local.0 {
+                    best_local = (t, phases);
+                }
+            }
+        }
+        pairs.push(pair);
     }
     stop_workers(ws);
+    let median = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        match v.len() {
+            0 => f64::NAN,
+            n if n % 2 == 1 => v[n / 2],
+            n => 0.5 * (v[n / 2 - 1] + v[n / 2]),
+        }
+    };
+    let wall: Vec<f64> = pairs.iter().map(|p| p[1].0 / p[0].0).collect();
+    let cpu: Vec<f64> = pairs.iter().map(|p| p[1].1 / p[0].1).collect();
+    let each = |v: &[f64]| {
+        v.iter()
+            .map(|r| format!("{:+.1}", (r - 1.0) * 100.0))
+            .collect::<Vec<_>>()
+            .join(" ")
+    };
+    let (local, farm) = (best_local.0, best_farm.0);
+    for (i, p) in pairs.iter().enumerate() {
+        eprintln!(
+            "pair {i}: in-process {:.3} s / {:.2} CPU s, farm {:.3} s / {:.2} CPU s",
+            p[0].0, p[0].1, p[1].0, p[1].1
+        );
+    }
     println!(
-        "overhead [{backend:?}]: {estimator}, {scene_name} {res}x{res} {spp} spp, tiles of {tile}, {tasks} tasks, best of {repeats}: \
-         in-process 2 threads {local:.3} s ({local_phases}), farm {n_workers} workers x {slots} slots {farm:.3} s (submit to done; {phases}) => overhead {:+.1} %; \
-         CPU seconds (whole process, best of {repeats}): in-process {local_cpu:.2}, farm {farm_cpu:.2} ({:+.1} %)",
+        "overhead [{backend:?}]: {estimator}, {scene_name} {res}x{res} {spp} spp, tiles of {tile}, {tasks} tasks, {repeats} pairs: \
+         in-process 2 threads best {local:.3} s ({}), farm {n_workers} workers x {slots} slots best {farm:.3} s (submit to done; {}); \
+         wall overhead: median of pairs {:+.1} % (each pair: {}; best vs best {:+.1} %); \
+         CPU overhead (whole process): median of pairs {:+.1} % (each pair: {})",
+        best_local.1,
+        best_farm.1,
+        (median(wall.clone()) - 1.0) * 100.0,
+        each(&wall),
         (farm / local - 1.0) * 100.0,
-        (farm_cpu / local_cpu - 1.0) * 100.0
+        (median(cpu.clone()) - 1.0) * 100.0,
+        each(&cpu),
     );
 }
 
