@@ -423,8 +423,8 @@ impl CvContext<'_> {
 /// The coefficients are rounded to `bfloat16` *before* `Σα` is summed (in `f64`, stored as
 /// the hi/lo pair, exact to ~2⁻⁴⁸ relative), so the added `Σα` is the sum of exactly the `α`
 /// whose terms are subtracted and the estimator stays unbiased [Hua eq. 17] — any fixed `α`
-/// does; the rounding only moves `α` by at most 2⁻⁸ relative, which changes the variance of
-/// the controlled estimate by a few parts per million of the CV term's.
+/// does; the rounding only moves each `α` by at most 2⁻⁸ relative, which adds at most
+/// 2⁻¹⁶ (15 ppm) of the CV term's own variance.
 #[derive(Debug)]
 pub struct CoefficientTable {
     slot: Vec<u32>,
