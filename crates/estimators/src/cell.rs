@@ -621,49 +621,57 @@ impl CellAccumulator {
         if other.part_ids.is_empty() {
             return Ok(());
         }
-        // Merge-join of two sorted partition lists; the result is stored in index order.
+        // In place: a partition both have is summed where `self` stores it (`p + q`, the
+        // addition a merge-join of the two sorted lists makes), one only `other` has is
+        // appended (its entry copied, as a merge-join copies it) and its index inserted into
+        // the sorted list. Same sums, counts and sorted view (equality, encoding) as a
+        // merge-join, without rebuilding every list on each merge: the band and tile tables of
+        // a training phase are merged cell by cell, mostly into partitions already present.
         let stride = self.stride();
-        let n = self.part_ids.len() + other.part_ids.len();
-        let mut ids = Vec::with_capacity(n);
-        let mut counts = Vec::with_capacity(n);
-        let mut data = Vec::with_capacity(n * stride);
-        let (mut a, mut b) = (
-            self.sorted_slots().peekable(),
-            other.sorted_slots().peekable(),
-        );
-        loop {
-            match (a.peek().copied(), b.peek().copied()) {
-                (Some((x, i)), Some((y, j))) if x == y => {
-                    ids.push(x);
-                    counts.push(self.part_counts[i] + other.part_counts[j]);
-                    let (da, db) = (self.entry(i), other.entry(j));
-                    data.extend(da.iter().zip(db).map(|(p, q)| p + q));
-                    a.next();
-                    b.next();
+        if self.part_ids.is_empty() {
+            let n = other.part_ids.len();
+            self.part_ids.reserve(n);
+            self.part_slots.reserve(n);
+            self.part_counts.reserve(n);
+            self.part_data.reserve(n * stride);
+        }
+        for (id, j) in other.sorted_slots() {
+            let src = other.entry(j);
+            match self.stored_slot(id) {
+                Some(s) => {
+                    self.part_counts[s] += other.part_counts[j];
+                    let dst = &mut self.part_data[s * stride..(s + 1) * stride];
+                    for (p, q) in dst.iter_mut().zip(src) {
+                        *p += q;
+                    }
                 }
-                (Some((x, i)), y) if y.is_none_or(|(y, _)| x < y) => {
-                    ids.push(x);
-                    counts.push(self.part_counts[i]);
-                    data.extend_from_slice(self.entry(i));
-                    a.next();
+                None => {
+                    let s = self.part_counts.len();
+                    let at = self.part_ids.partition_point(|&x| x < id);
+                    self.part_ids.insert(at, id);
+                    self.part_slots.insert(at, s as u32);
+                    self.part_counts.push(other.part_counts[j]);
+                    self.part_data.extend_from_slice(src);
+                    if let Some(m) = self.slot_map.get_mut(id as usize) {
+                        *m = s as u32;
+                    }
                 }
-                (_, Some((y, j))) => {
-                    ids.push(y);
-                    counts.push(other.part_counts[j]);
-                    data.extend_from_slice(other.entry(j));
-                    b.next();
-                }
-                (None, None) => break,
-                (Some(_), None) => unreachable!("taken by the arm above"),
             }
         }
-        drop((a, b));
-        self.part_slots = (0..ids.len() as u32).collect();
-        self.part_ids = ids;
-        self.part_counts = counts;
-        self.part_data = data;
-        self.rebuild_slot_map();
         Ok(())
+    }
+
+    /// Storage slot of partition `id` if it was sampled (direct map or binary search).
+    #[inline]
+    fn stored_slot(&self, id: u32) -> Option<usize> {
+        match self.slot_map.get(id as usize) {
+            Some(&s) => (s != u32::MAX).then_some(s as usize),
+            None => self
+                .part_ids
+                .binary_search(&id)
+                .ok()
+                .map(|i| self.part_slots[i] as usize),
+        }
     }
 
     /// Merges `parts` in the given (canonical) order into an accumulator of `layout`.
