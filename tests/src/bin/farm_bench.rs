@@ -46,11 +46,14 @@ use estimators::table::AccumulatorTable;
 use protocol::frame::PixelRecord;
 use protocol::lease::{JobState, TaskLease};
 
+/// The value after the command-line flag `name`, if any.
+fn arg_str(name: &str) -> Option<String> {
+    std::env::args().skip_while(|a| a != name).nth(1)
+}
+
+/// The numeric value after the flag `name`, or `default`.
 fn arg(name: &str, default: usize) -> usize {
-    let args: Vec<String> = std::env::args().collect();
-    args.iter()
-        .position(|a| a == name)
-        .and_then(|i| args.get(i + 1))
+    arg_str(name)
         .and_then(|v| v.parse().ok())
         .unwrap_or(default)
 }
@@ -161,10 +164,7 @@ fn overhead(backend: Backend, estimator: &str, scene_name: &str, res: u32, spp: 
         .collect::<Vec<_>>();
     std::thread::sleep(Duration::from_millis(300)); // workers registered and polling
     // `--side local|farm` runs one side only (to profile it alone); both by default.
-    let side = std::env::args()
-        .skip_while(|a| a != "--side")
-        .nth(1)
-        .unwrap_or_else(|| "both".into());
+    let side = arg_str("--side").unwrap_or_else(|| "both".into());
     // One in-process render: (wall s, process CPU s, phase times).
     let run_local = || {
         let (t0, c0) = (Instant::now(), cpu_time::cpu_seconds());
@@ -624,11 +624,7 @@ fn main() {
     } else {
         Backend::Sqlite
     };
-    let only = args
-        .iter()
-        .position(|a| a == "--only")
-        .and_then(|i| args.get(i + 1))
-        .cloned();
+    let only = arg_str("--only");
     let run = |name: &str| only.as_deref().is_none_or(|o| o == name);
     if run("queue") {
         queue_throughput(backend, arg("--sim-workers", 16), arg("--tasks", 1024));
@@ -642,34 +638,22 @@ fn main() {
         );
     }
     if run("cms") {
-        let scene = args
-            .iter()
-            .position(|a| a == "--scene")
-            .and_then(|i| args.get(i + 1))
-            .map_or("many-lights", String::as_str);
+        let scene = arg_str("--scene").unwrap_or_else(|| "many-lights".into());
         cms_job(
             backend,
             arg("--workers", 2),
-            scene,
+            &scene,
             arg("--res", 256) as u32,
             arg("--spp", 32) as u32,
         );
     }
     if run("overhead") {
-        let estimator = args
-            .iter()
-            .position(|a| a == "--estimator")
-            .and_then(|i| args.get(i + 1))
-            .map_or("path", String::as_str);
-        let scene = args
-            .iter()
-            .position(|a| a == "--scene")
-            .and_then(|i| args.get(i + 1))
-            .map_or("cornell-box", String::as_str);
+        let estimator = arg_str("--estimator").unwrap_or_else(|| "path".into());
+        let scene = arg_str("--scene").unwrap_or_else(|| "cornell-box".into());
         overhead(
             backend,
-            estimator,
-            scene,
+            &estimator,
+            &scene,
             arg("--res", 256) as u32,
             arg("--spp", 32) as u32,
             arg("--tile", 32) as u32,

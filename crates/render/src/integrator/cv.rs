@@ -1487,12 +1487,15 @@ pub fn render_estimator_image(
     let job = match job {
         Some(j) if !plain => j,
         _ => {
-            let path_settings = RenderSettings {
-                estimator: Estimator::Path,
+            let st = RenderSettings {
+                estimator: if plain {
+                    Estimator::Path
+                } else {
+                    settings.estimator
+                },
                 ..*settings
             };
-            let st = if plain { &path_settings } else { settings };
-            let (film, stats) = crate::tile::render_image(rs, st, opts, progress)?;
+            let (film, stats) = crate::tile::render_image(rs, &st, opts, progress)?;
             let report = EstimatorReport {
                 estimator: estimator_name(&settings.estimator).to_string(),
                 render_spp: settings.spp,
