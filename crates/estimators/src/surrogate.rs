@@ -5,7 +5,7 @@
 //! surrogate phase of a farm job from uploaded pixel records): the same moments give the
 //! same surrogate bits.
 
-use crate::denoise::{AtrousOptions, atrous};
+use crate::denoise::{AtrousOptions, atrous_mono};
 
 /// Per-pixel sums of one phase: radiance, its square, the albedo and normal AOVs, and the
 /// sample count.
@@ -75,8 +75,10 @@ pub fn surrogate_image(pixels: &[PixelMoments], width: usize, height: usize) -> 
         .collect();
     let albedo: Vec<f32> = pixels.iter().flat_map(|p| mean(p, p.albedo)).collect();
     let normal: Vec<f32> = pixels.iter().flat_map(|p| mean(p, p.normal)).collect();
-    let den = atrous(
-        &color,
+    // Only the channel mean is wanted, and the filter's weights see only the mean: filter it
+    // alone ([`atrous_mono`]).
+    let den = atrous_mono(
+        &lum,
         &var,
         Some(&albedo),
         Some(&normal),
@@ -84,10 +86,8 @@ pub fn surrogate_image(pixels: &[PixelMoments], width: usize, height: usize) -> 
         h,
         &AtrousOptions::default(),
     )
-    .unwrap_or(color);
-    den.chunks_exact(3)
-        .map(|c| f64::from(c[0] + c[1] + c[2]) / 3.0)
-        .collect()
+    .unwrap_or(lum);
+    den.into_iter().map(f64::from).collect()
 }
 
 /// Magic of an encoded surrogate image.
