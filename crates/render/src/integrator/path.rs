@@ -225,8 +225,9 @@ pub fn trace<O: VertexObserver>(
                 visible,
             });
         }
-        // What the observer gets for this vertex; the BSDF technique is filled in below.
-        let vertex = VertexRecord {
+        // What the observer gets for this vertex; the BSDF technique is filled in below (in
+        // place: the record is ~160 bytes, and rebuilding it per branch cost a copy each).
+        let mut vertex = VertexRecord {
             depth,
             p: h.p,
             ns: h.ns,
@@ -272,10 +273,7 @@ pub fn trace<O: VertexObserver>(
             rr_q,
         };
         if !alive && !zero_weight_trace {
-            let vertex = VertexRecord {
-                bsdf: Some(tech),
-                ..vertex
-            };
+            vertex.bsdf = Some(tech);
             report(observer, controls, &mut radiance, &vertex);
             break;
         }
@@ -315,10 +313,7 @@ pub fn trace<O: VertexObserver>(
             };
             radiance += beta * tech.emitted * w;
         }
-        let vertex = VertexRecord {
-            bsdf: Some(tech),
-            ..vertex
-        };
+        vertex.bsdf = Some(tech);
         report(observer, controls, &mut radiance, &vertex);
         if zero_weight_trace {
             break;
