@@ -523,7 +523,9 @@ impl CoefficientTable {
             return self.coeffs[slot].cv_term(&s.cv(if bsdf { &lb } else { &[] }));
         }
         let mut t = [0.0f64; 3];
-        if s.pdf <= 0.0 || !s.pdf.is_finite() {
+        // `pdf > 0 && pdf finite` as two comparisons (NaN fails both); `is_finite` compiled
+        // to a class test of ~20 instructions, ≈ 1 % of a render phase's instructions.
+        if !((s.pdf > 0.0) & (s.pdf < f64::INFINITY)) {
             return t;
         }
         let inv_p = 1.0 / s.pdf;
