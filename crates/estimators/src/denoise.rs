@@ -26,9 +26,8 @@
 //! { "surrogate": { "iterations": 5, "sigma_color": 4.0, "sigma_albedo": 0.1, "sigma_normal": 0.1 } }
 //! ```
 //!
-//! [`atrous_mono`] filters a one-channel image with the same weights; the surrogate uses it
-//! on the channel mean, which is all relative training needs (a third of [`atrous`]'s
-//! work). The exponential is a polynomial `2^x` accurate to ~1e-6 relative, and taps whose
+//! [`atrous`] with one channel filters the channel mean with the same weights; the surrogate
+//! uses it, since that is all relative training needs (a third of the RGB filter's work). The exponential is a polynomial `2^x` accurate to ~1e-6 relative, and taps whose
 //! exponent exceeds 24 are skipped (weight below `e^-24` of the kernel's); measured on a
 //! 256×128 surrogate: 633 M → 378 M instructions (callgrind).
 //!
@@ -78,9 +77,14 @@ impl Default for AtrousOptions {
 
 const KERNEL: [f32; 5] = [1.0 / 16.0, 4.0 / 16.0, 6.0 / 16.0, 4.0 / 16.0, 1.0 / 16.0];
 
-/// Denoises `color` (RGB per pixel) with per-pixel `variance` of its channel mean, guided by
-/// optional `albedo` and `normal` buffers. Returns the filtered RGB image.
-pub fn atrous(
+/// Denoises `color` (`C` channels per pixel: 3 for RGB) with per-pixel `variance` of its
+/// channel mean, guided by optional `albedo` and `normal` buffers (RGB and XYZ per pixel).
+/// Returns the filtered image (`C` channels).
+///
+/// The weights depend only on the channel mean, the variance and the guides, so filtering the
+/// channel mean alone (`C = 1`) gives the mean of the RGB result (up to rounding) at a third
+/// of the work: the surrogate of relative training [Hua eq. 25] needs no more.
+pub fn atrous<const C: usize>(
     color: &[f32],
     variance: &[f32],
     albedo: Option<&[f32]>,
@@ -89,13 +93,14 @@ pub fn atrous(
     height: usize,
     options: &AtrousOptions,
 ) -> Result<Vec<f32>, DenoiseError> {
+    const { assert!(C >= 1, "an image needs at least one channel") };
     let n = width
         .checked_mul(height)
         .ok_or(DenoiseError::SizeMismatch)?;
-    if color.len() != 3 * n
+    if n.checked_mul(C) != Some(color.len())
         || variance.len() != n
-        || albedo.is_some_and(|a| a.len() != 3 * n)
-        || normal.is_some_and(|a| a.len() != 3 * n)
+        || albedo.is_some_and(|a| n.checked_mul(3) != Some(a.len()))
+        || normal.is_some_and(|a| n.checked_mul(3) != Some(a.len()))
     {
         return Err(DenoiseError::SizeMismatch);
     }
@@ -104,42 +109,8 @@ pub fn atrous(
     // Rows are independent within a level: bands of rows are filtered on all cores, each
     // pixel with the same arithmetic in the same order, so the bits do not depend on the
     // thread count.
-    Ok(filter_levels::<3>(
+    Ok(filter_levels::<C>(
         color,
-        variance,
-        &ctx,
-        options.iterations,
-        threads_for(n),
-    ))
-}
-
-/// [`atrous`] of a one-channel image (e.g. the channel mean of an RGB image). The weights
-/// depend only on the channel mean, the variance and the guides, so filtering the mean gives
-/// the mean of [`atrous`]'s filtered channels (up to rounding) at a third of the work: the
-/// surrogate of relative training [Hua eq. 25] needs no more.
-pub fn atrous_mono(
-    value: &[f32],
-    variance: &[f32],
-    albedo: Option<&[f32]>,
-    normal: Option<&[f32]>,
-    width: usize,
-    height: usize,
-    options: &AtrousOptions,
-) -> Result<Vec<f32>, DenoiseError> {
-    let n = width
-        .checked_mul(height)
-        .ok_or(DenoiseError::SizeMismatch)?;
-    if value.len() != n
-        || variance.len() != n
-        || albedo.is_some_and(|a| a.len() != 3 * n)
-        || normal.is_some_and(|a| a.len() != 3 * n)
-    {
-        return Err(DenoiseError::SizeMismatch);
-    }
-    check_finite(value, variance, albedo, normal)?;
-    let ctx = Level::new(albedo, normal, options, width, height);
-    Ok(filter_levels::<1>(
-        value,
         variance,
         &ctx,
         options.iterations,
@@ -398,20 +369,20 @@ mod tests {
         let (w, h) = (7, 5);
         let c = vec![0.25f32; 3 * w * h];
         let v = vec![0.01f32; w * h];
-        let out = atrous(&c, &v, None, None, w, h, &AtrousOptions::default()).unwrap();
+        let out = atrous::<3>(&c, &v, None, None, w, h, &AtrousOptions::default()).unwrap();
         assert!(out.iter().all(|x| (x - 0.25).abs() < 1e-6));
         assert_eq!(
-            atrous(&c[1..], &v, None, None, w, h, &AtrousOptions::default()),
+            atrous::<3>(&c[1..], &v, None, None, w, h, &AtrousOptions::default()),
             Err(DenoiseError::SizeMismatch)
         );
         let mut bad = c.clone();
         bad[4] = f32::NAN;
         assert_eq!(
-            atrous(&bad, &v, None, None, w, h, &AtrousOptions::default()),
+            atrous::<3>(&bad, &v, None, None, w, h, &AtrousOptions::default()),
             Err(DenoiseError::InvalidValue)
         );
         assert_eq!(
-            atrous(&c, &v, None, None, usize::MAX, 2, &AtrousOptions::default()),
+            atrous::<3>(&c, &v, None, None, usize::MAX, 2, &AtrousOptions::default()),
             Err(DenoiseError::SizeMismatch)
         );
     }
@@ -435,7 +406,7 @@ mod tests {
         }
         // Variance of t·U(0.5, 1.5) is t²/12.
         let v: Vec<f32> = (0..w * h).map(|p| truth(p % w).powi(2) / 12.0).collect();
-        let out = atrous(&c, &v, Some(&a), None, w, h, &AtrousOptions::default()).unwrap();
+        let out = atrous::<3>(&c, &v, Some(&a), None, w, h, &AtrousOptions::default()).unwrap();
         let mse = |img: &[f32]| {
             (0..w * h)
                 .map(|p| (img[3 * p] - truth(p % w)).powi(2))
@@ -476,10 +447,10 @@ mod tests {
             assert!(bits(t) == one, "{t} threads changed the bits");
         }
         // And `atrous` itself (whatever thread count it picks) agrees.
-        let out = atrous(&c, &v, Some(&a), Some(&nrm), w, h, &opts).unwrap();
+        let out = atrous::<3>(&c, &v, Some(&a), Some(&nrm), w, h, &opts).unwrap();
         assert!(out.iter().map(|x| x.to_bits()).eq(one));
         assert!(
-            atrous(&[], &[], None, None, 0, 4, &opts)
+            atrous::<3>(&[], &[], None, None, 0, 4, &opts)
                 .unwrap()
                 .is_empty()
         );
@@ -517,8 +488,8 @@ mod tests {
             .map(|x| (x[0] + x[1] + x[2]) / 3.0)
             .collect();
         let opts = AtrousOptions::default();
-        let rgb = atrous(&c, &v, Some(&a), Some(&nrm), w, h, &opts).unwrap();
-        let mono = atrous_mono(&mean, &v, Some(&a), Some(&nrm), w, h, &opts).unwrap();
+        let rgb = atrous::<3>(&c, &v, Some(&a), Some(&nrm), w, h, &opts).unwrap();
+        let mono = atrous::<1>(&mean, &v, Some(&a), Some(&nrm), w, h, &opts).unwrap();
         for (m, x) in mono.iter().zip(rgb.chunks_exact(3)) {
             let want = (x[0] + x[1] + x[2]) / 3.0;
             assert!(
@@ -527,7 +498,7 @@ mod tests {
             );
         }
         assert_eq!(
-            atrous_mono(&mean[1..], &v, None, None, w, h, &opts),
+            atrous::<1>(&mean[1..], &v, None, None, w, h, &opts),
             Err(DenoiseError::SizeMismatch)
         );
     }
@@ -548,7 +519,7 @@ mod tests {
             sigma_normal: 1e-3,
             ..AtrousOptions::default()
         };
-        let out = atrous(&c, &v, None, Some(&nrm), w, h, &opts).unwrap();
+        let out = atrous::<3>(&c, &v, None, Some(&nrm), w, h, &opts).unwrap();
         assert!(out.iter().zip(&c).all(|(o, i)| (o - i).abs() < 1e-6));
     }
 }

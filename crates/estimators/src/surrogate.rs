@@ -5,7 +5,7 @@
 //! surrogate phase of a farm job from uploaded pixel records): the same moments give the
 //! same surrogate bits.
 
-use crate::denoise::{AtrousOptions, atrous_mono};
+use crate::denoise::{AtrousOptions, atrous};
 
 /// Per-pixel sums of one phase: radiance, its square, the albedo and normal AOVs, and the
 /// sample count.
@@ -76,8 +76,8 @@ pub fn surrogate_image(pixels: &[PixelMoments], width: usize, height: usize) -> 
     let albedo: Vec<f32> = pixels.iter().flat_map(|p| mean(p, p.albedo)).collect();
     let normal: Vec<f32> = pixels.iter().flat_map(|p| mean(p, p.normal)).collect();
     // Only the channel mean is wanted, and the filter's weights see only the mean: filter it
-    // alone ([`atrous_mono`]).
-    let den = atrous_mono(
+    // alone ([`atrous`] with one channel).
+    let den = atrous::<1>(
         &lum,
         &var,
         Some(&albedo),
