@@ -289,3 +289,63 @@ fn cms_at_depth_two_is_path() {
         );
     }
 }
+
+/// A training tile's table has the same bits for any thread count: its bands render in
+/// parallel and finish in any order, but their samples are added to the tile's cells in band
+/// order (a regression guard for the in-order fold; pixels alone would not show a changed
+/// sum, since the coefficients are rounded to `bfloat16`).
+#[test]
+fn training_table_bits_do_not_depend_on_threads() {
+    use estimators::table::{AccumulatorTable, encode_table};
+    use render::integrator::cv::CvJob;
+    use render::{RenderScene, RenderSettings, TileRect};
+
+    // One 64 × 128 training tile: eight 16-row bands.
+    let s = load("scenes/many-lights/scene.json", 64, 128);
+    let estimators = [
+        Estimator::Cms(CmsOptions::default()),
+        Estimator::OptimalMis(OptimalMisOptions::default()),
+        Estimator::PerLightCv(PerLightCvOptions::default()),
+    ];
+    for e in estimators {
+        let st = RenderSettings {
+            spp: 20,
+            seed: 3,
+            max_depth: 5,
+            estimator: e,
+            ..RenderSettings::from_scene(&s)
+        };
+        let rs = RenderScene::new(&s, &st).unwrap();
+        let job = CvJob::new(&rs, &st).unwrap().expect("a phased estimator");
+        let train = job.phases().train.clone();
+        let surrogate = job.needs_surrogate().then(|| vec![0.5; 64 * 128]);
+        let tile = TileRect {
+            x0: 0,
+            y0: 0,
+            width: 64,
+            height: 128,
+        };
+        let bits = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            let cells = pool
+                .install(|| job.train_tile(tile, train.clone(), surrogate.as_deref()))
+                .unwrap()
+                .cells;
+            match cells {
+                AccumulatorTable::Moments(m) => encode_table(&m),
+                AccumulatorTable::Mean(m) => encode_table(&m),
+            }
+        };
+        let one = bits(1);
+        assert!(one.len() > 1000, "{e:?}: a table with cells");
+        for threads in [2, 3, 5, 8] {
+            assert!(
+                bits(threads) == one,
+                "{e:?}: {threads} threads changed the table"
+            );
+        }
+    }
+}

@@ -71,7 +71,7 @@
 //! `[0, s)`, `[s, s+T)`, `[s+T, spp)` of the job's sampler, all kept in the image.
 //! Training tiles are fixed ([`TRAIN_TILE`] pixels, independent of
 //! [`RenderOptions::tile_size`]) and their cell accumulators are merged in row-major tile
-//! order (a tile's own table: its bands' cells merged in band order, [`BAND_ROWS`]); every
+//! order (a tile's own table: its bands' samples added in band order, [`BAND_ROWS`]); every
 //! pixel sums its samples in index order; so the same job and seed give
 //! bitwise-identical images for any thread count and tile size.
 //!
@@ -118,8 +118,9 @@ pub const NORMAL_BINS: u32 = 6;
 fn normal_bin(n: Vec3) -> u32 {
     let a = n.abs();
     let x_wins = (a.x >= a.y) & (a.x >= a.z);
-    let z_over_y = !(a.y >= a.z);
-    let axis = u32::from(!x_wins) * (1 + u32::from(z_over_y));
+    // NaN comparisons are false: as in the `if` chain, a NaN makes `z` the axis.
+    let y_over_z = a.y >= a.z;
+    let axis = u32::from(!x_wins) * (1 + u32::from(!y_over_z));
     let v = [n.x, n.y, n.z][axis as usize];
     2 * axis + u32::from(v < 0.0)
 }
@@ -581,15 +582,83 @@ impl std::hash::Hasher for KeyHasher {
 
 type KeyMap = HashMap<u32, usize, std::hash::BuildHasherDefault<KeyHasher>>;
 
-/// Training accumulators of one tile, in first-touch order.
+/// One training sample of a moments accumulator: [`CellAccumulator::add`]'s arguments and
+/// the cell (64 bytes).
+#[derive(Clone, Copy, Debug)]
+struct TrainRecord {
+    key: u32,
+    /// Partition index, `u32::MAX` for none.
+    partition: u32,
+    weight: f64,
+    value: [f64; 3],
+    pdf: f64,
+    lambda_partition: f64,
+    lambda_bsdf: f64,
+}
+
+/// Records a band logs at most before adding them to its own cells (64 MiB; a default job's
+/// band logs a quarter of that). The spill points depend only on the record count, so the
+/// sums stay the same for any thread count.
+const TRAIN_LOG_MAX: usize = 1 << 20;
+
+/// Training accumulators of a band or a tile, in first-touch order, and (moments kinds) a
+/// band's log of samples not yet added.
+///
+/// A band of a training tile logs its samples and the tile adds the bands' logs in band order
+/// to one set of cells ([`InOrderFold`]), rather than each band accumulating its own cells and
+/// the tile merging them: a band touches a few thousand cells a few times each, and the
+/// per-band cells cost a first touch (allocations, partition inserts) per cell, light and
+/// band plus a merge of every band — 18 points of the 70 % a many-lights training sample
+/// costs over `path` (`cv_overhead`, one thread: the same count as one band per tile).
 #[derive(Default)]
 struct TileCells {
     index: KeyMap,
     cells: Vec<(u32, CellAcc)>,
     last: Option<(u32, usize)>,
+    log: Vec<TrainRecord>,
 }
 
 impl TileCells {
+    /// Logs one moments sample (a full log is first added to the band's own cells).
+    #[inline]
+    fn record(&mut self, r: TrainRecord, ctx: &CvContext<'_>) {
+        if self.log.len() >= TRAIN_LOG_MAX {
+            let log = std::mem::take(&mut self.log);
+            self.add_records(&log, ctx);
+        }
+        self.log.push(r);
+    }
+
+    /// Adds logged samples to the cells, in order.
+    fn add_records(&mut self, log: &[TrainRecord], ctx: &CvContext<'_>) {
+        for r in log {
+            if let CellAcc::Moments(acc) = self.get(r.key, ctx) {
+                let lb = [r.lambda_bsdf];
+                let sample = CvSample {
+                    pdf: r.pdf,
+                    partition: (r.partition != u32::MAX)
+                        .then_some((r.partition, r.lambda_partition)),
+                    overlapping: &lb,
+                };
+                let _ = acc.add(r.weight, r.value, &sample);
+            }
+        }
+    }
+
+    /// Adds a band: its own cells (what it spilled, or a `per_light_cv` band's means), then
+    /// its log, in the band's sample order.
+    fn absorb(&mut self, band: TileCells, ctx: &CvContext<'_>) {
+        for (key, acc) in &band.cells {
+            // Same job, same layout: a merge cannot fail.
+            let _ = match (self.get(*key, ctx), acc) {
+                (CellAcc::Moments(a), CellAcc::Moments(b)) => a.merge(b),
+                (CellAcc::Mean(a), CellAcc::Mean(b)) => a.merge(b),
+                _ => Ok(()),
+            };
+        }
+        self.add_records(&band.log, ctx);
+    }
+
     #[inline]
     fn get(&mut self, key: u32, ctx: &CvContext<'_>) -> &mut CellAcc {
         let slot = match self.last {
@@ -813,31 +882,38 @@ impl VertexObserver for Policy<'_, '_> {
         let kind = self.ctx.kind;
         let mut out = plain;
         match (&mut self.phase, cell) {
-            (Phase::Train(cells), Some(key)) => {
-                let acc = cells.get(key, self.ctx);
-                match acc {
-                    CellAcc::Moments(acc) => {
-                        let w0 = if kind == Kind::OptimalMis {
-                            1.0
-                        } else {
-                            let t = r.throughput;
-                            training_weight(f64::from(t.x + t.y + t.z) / 3.0, self.surrogate)
-                        };
-                        for s in samples.iter().flatten() {
-                            let lb = [s.lambda_bsdf];
-                            let _ = acc.add(w0 * s.scale * s.scale, s.value, &s.cv(&lb));
-                        }
-                    }
-                    CellAcc::Mean(acc) => {
-                        acc.add_vertex();
-                        if let (Some(lt), Some(nee)) = (r.light, samples[0])
-                            && let Some((c, _)) = self.ctx.comps.of(lt.light)
-                        {
-                            acc.add(c, nee.value);
-                        }
-                    }
+            (Phase::Train(cells), Some(key)) if kind != Kind::PerLight => {
+                let w0 = if kind == Kind::OptimalMis {
+                    1.0
+                } else {
+                    let t = r.throughput;
+                    training_weight(f64::from(t.x + t.y + t.z) / 3.0, self.surrogate)
+                };
+                for s in samples.iter().flatten() {
+                    let (partition, lambda_partition) = s.partition.unwrap_or((u32::MAX, 0.0));
+                    let rec = TrainRecord {
+                        key,
+                        partition,
+                        weight: w0 * s.scale * s.scale,
+                        value: s.value,
+                        pdf: s.pdf,
+                        lambda_partition,
+                        lambda_bsdf: s.lambda_bsdf,
+                    };
+                    cells.record(rec, self.ctx);
                 }
             }
+            (Phase::Train(cells), Some(key)) => match cells.get(key, self.ctx) {
+                CellAcc::Moments(_) => {}
+                CellAcc::Mean(acc) => {
+                    acc.add_vertex();
+                    if let (Some(lt), Some(nee)) = (r.light, samples[0])
+                        && let Some((c, _)) = self.ctx.comps.of(lt.light)
+                    {
+                        acc.add(c, nee.value);
+                    }
+                }
+            },
             (Phase::Apply(table), Some(key)) => {
                 if let Some(slot) = table.get(key) {
                     out = table.alpha_sum(slot);
@@ -1064,7 +1140,7 @@ impl<'a> CvJob<'a> {
             table: None,
             surrogate: None,
         };
-        let t = Banded::run(&self.ctx, tile, samples, input);
+        let t = Banded::run(&self.ctx, tile, samples, input, None);
         TileFilm {
             film: t.film,
             rays: t.rays,
@@ -1092,10 +1168,10 @@ impl<'a> CvJob<'a> {
             table: None,
             surrogate,
         };
-        let t = Banded::run(&self.ctx, tile, samples, input);
-        // Each band's cells, merged in band order (see [`BAND_ROWS`]).
-        let kind = self.ctx.kind;
-        let cells = merge_in_order(kind, t.cells.into_iter().map(|b| band_table(kind, b)))?;
+        let fold = InOrderFold::default();
+        let t = Banded::run(&self.ctx, tile, samples, input, Some(&fold));
+        // Every band's samples, added in band order (see [`BAND_ROWS`]).
+        let cells = band_table(self.ctx.kind, fold.finish());
         Ok(TrainTile {
             out: TileFilm {
                 film: t.film,
@@ -1159,7 +1235,7 @@ impl<'a> CvJob<'a> {
             table: Some(table),
             surrogate: None,
         };
-        let t = Banded::run(&self.ctx, tile, samples, input);
+        let t = Banded::run(&self.ctx, tile, samples, input, None);
         RenderTile {
             out: TileFilm {
                 film: t.film,
@@ -1205,7 +1281,7 @@ struct PhaseInput<'a> {
 /// Rows of the bands a tile of any phase is rendered in: the bands of a tile run in
 /// parallel (rayon, in whatever pool is current: the in-process driver's, a farm worker's
 /// global one) and are joined in band order. Fixed — never derived from a thread count — so
-/// a training tile's table (each band's cells, merged in band order) has the same bits for
+/// a training tile's table (each band's samples, added in band order) has the same bits for
 /// any thread count, in-process and on every worker; the pixels do not depend on the bands
 /// at all (each pixel sums its own samples in index order). A worker renders a 128-pixel
 /// training tile on all its cores, which keeps the few large tasks of a training phase from
@@ -1220,24 +1296,92 @@ pub const BAND_ROWS: u32 = 16;
 /// keep every core busy; `docs/bench/farm.md` §7).
 pub const PIXEL_BAND_ROWS: u32 = 2;
 
-/// A tile's outputs joined from its bands (row-major over the tile, like [`TileOut`]), with
-/// each band's cells in band order.
+/// A tile's outputs joined from its bands (row-major over the tile, like [`TileOut`]); a
+/// training tile's cells go to its [`InOrderFold`].
 struct Banded {
     film: Film,
     rays: u64,
-    cells: Vec<TileCells>,
     cv_sum: Vec<[f64; 3]>,
     cell_id: Vec<f32>,
 }
 
+/// Adds the training bands of a tile to one set of cells in band order while the bands
+/// render in any order: a finished band is queued, and whichever thread finds the next band
+/// in line adds it (and any queued successors) while the others go on rendering.
+#[derive(Default)]
+struct InOrderFold {
+    state: std::sync::Mutex<FoldState>,
+}
+
+struct FoldState {
+    /// The band to add next.
+    next: usize,
+    /// Finished bands waiting for their predecessors.
+    pending: BTreeMap<usize, TileCells>,
+    /// The tile's cells; `None` while a thread is adding to them.
+    cells: Option<TileCells>,
+}
+
+impl Default for FoldState {
+    fn default() -> Self {
+        Self {
+            next: 0,
+            pending: BTreeMap::new(),
+            cells: Some(TileCells::default()),
+        }
+    }
+}
+
+impl InOrderFold {
+    /// Hands over band `band`'s cells and log.
+    fn submit(&self, band: usize, cells: TileCells, ctx: &CvContext<'_>) {
+        let lock = || self.state.lock().unwrap_or_else(|e| e.into_inner());
+        let mut st = lock();
+        st.pending.insert(band, cells);
+        loop {
+            // Another thread is adding: it takes this band too when it comes next in line.
+            let Some(mut acc) = st.cells.take() else {
+                return;
+            };
+            let mut batch = Vec::new();
+            while let Some(b) = {
+                let next = st.next;
+                st.pending.remove(&next)
+            } {
+                batch.push(b);
+                st.next += 1;
+            }
+            if batch.is_empty() {
+                st.cells = Some(acc);
+                return;
+            }
+            drop(st);
+            for b in batch {
+                acc.absorb(b, ctx);
+            }
+            st = lock();
+            st.cells = Some(acc);
+        }
+    }
+
+    /// The tile's cells once every band was submitted.
+    fn finish(self) -> TileCells {
+        let st = self.state.into_inner().unwrap_or_else(|e| e.into_inner());
+        debug_assert!(st.pending.is_empty());
+        st.cells.unwrap_or_default()
+    }
+}
+
 impl Banded {
     /// Renders `tile` as bands of full-width rows in parallel: [`BAND_ROWS`] rows for a
-    /// training tile (its table depends on them), [`PIXEL_BAND_ROWS`] otherwise.
+    /// training tile (its table depends on them), [`PIXEL_BAND_ROWS`] otherwise. A training
+    /// tile hands each band's cells to `fold`.
     fn run(
         ctx: &CvContext<'_>,
         tile: TileRect,
         samples: Range<u32>,
         input: PhaseInput<'_>,
+        fold: Option<&InOrderFold>,
     ) -> Self {
         let rows = match input.kind {
             PhaseKind::Train => BAND_ROWS,
@@ -1253,7 +1397,14 @@ impl Banded {
             .collect();
         let outs: Vec<TileOut> = bands
             .par_iter()
-            .map(|&b| run_tile(ctx, b, samples.clone(), input))
+            .enumerate()
+            .map(|(i, &b)| {
+                let mut out = run_tile(ctx, b, samples.clone(), input);
+                if let Some(f) = fold {
+                    f.submit(i, std::mem::take(&mut out.cells), ctx);
+                }
+                out
+            })
             .collect();
         // Full-width bands of a row-major tile: the tile's arrays are the bands' arrays
         // one after the other.
@@ -1267,7 +1418,6 @@ impl Banded {
                 rejected: 0,
             },
             rays: 0,
-            cells: Vec::with_capacity(outs.len()),
             cv_sum: Vec::new(),
             cell_id: Vec::new(),
         };
@@ -1275,7 +1425,6 @@ impl Banded {
             joined.film.pixels.extend_from_slice(&o.film.pixels);
             joined.film.rejected += o.film.rejected;
             joined.rays += o.rays;
-            joined.cells.push(o.cells);
             joined.cv_sum.extend_from_slice(&o.cv_sum);
             joined.cell_id.extend_from_slice(&o.cell_id);
         }
@@ -1893,8 +2042,13 @@ mod tests {
             let (x, y, z) = (c(q.x, g.res[0]), c(q.y, g.res[1]), c(q.z, g.res[2]));
             x + g.res[0] * (y + g.res[1] * z)
         }
-        let g = Grid::new((Vec3::splat(-1.0), Vec3::new(3.0, 1.0, 2.0)), Some([7, 3, 5]), 8, 8)
-            .unwrap();
+        let g = Grid::new(
+            (Vec3::splat(-1.0), Vec3::new(3.0, 1.0, 2.0)),
+            Some([7, 3, 5]),
+            8,
+            8,
+        )
+        .unwrap();
         let special = [
             0.0,
             -0.0,
