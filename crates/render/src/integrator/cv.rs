@@ -626,8 +626,11 @@ impl TileCells {
     #[inline]
     fn record(&mut self, r: TrainRecord, ctx: &CvContext<'_>) {
         if self.log.len() >= ctx.train_log_max {
-            let log = std::mem::take(&mut self.log);
+            let mut log = std::mem::take(&mut self.log);
             self.add_records(&log, ctx);
+            // Keep the allocation for the rest of the band.
+            log.clear();
+            self.log = log;
         }
         self.log.push(r);
     }
@@ -1175,7 +1178,7 @@ impl<'a> CvJob<'a> {
         let fold = InOrderFold::default();
         let t = Banded::run(&self.ctx, tile, samples, input, Some(&fold));
         // Every band's samples, added in band order (see [`BAND_ROWS`]).
-        let cells = band_table(self.ctx.kind, fold.finish());
+        let cells = cells_table(self.ctx.kind, fold.finish());
         Ok(TrainTile {
             out: TileFilm {
                 film: t.film,
@@ -1444,7 +1447,7 @@ fn merge_in_order(
 ) -> Result<AccumulatorTable, RenderError> {
     let mut tables = tables.into_iter();
     let Some(mut merged) = tables.next() else {
-        return Ok(band_table(kind, TileCells::default()));
+        return Ok(cells_table(kind, TileCells::default()));
     };
     for t in tables {
         merged.merge(&t).map_err(|_| RenderError::InvalidSetting {
@@ -1455,12 +1458,13 @@ fn merge_in_order(
     Ok(merged)
 }
 
-/// A band's training cells as a table keyed by cell (of the job's kind, also when empty).
-fn band_table(kind: Kind, band: TileCells) -> AccumulatorTable {
+/// Training cells (a tile's, or none) as a table keyed by cell (of the job's kind, also when
+/// empty).
+fn cells_table(kind: Kind, cells: TileCells) -> AccumulatorTable {
     match kind {
         Kind::PerLight => {
             let mut m = BTreeMap::new();
-            for (k, a) in band.cells {
+            for (k, a) in cells.cells {
                 if let CellAcc::Mean(a) = a {
                     m.insert(u64::from(k), a);
                 }
@@ -1469,7 +1473,7 @@ fn band_table(kind: Kind, band: TileCells) -> AccumulatorTable {
         }
         _ => {
             let mut m = BTreeMap::new();
-            for (k, a) in band.cells {
+            for (k, a) in cells.cells {
                 if let CellAcc::Moments(a) = a {
                     m.insert(u64::from(k), a);
                 }
