@@ -27,9 +27,10 @@
 //! ```
 //!
 //! [`atrous`] with one channel filters the channel mean with the same weights; the surrogate
-//! uses it, since that is all relative training needs (a third of the RGB filter's work). The exponential is a polynomial `2^x` accurate to ~1e-6 relative, and taps whose
-//! exponent exceeds 24 are skipped (weight below `e^-24` of the kernel's); measured on a
-//! 256×128 surrogate: 633 M → 378 M instructions (callgrind).
+//! uses it, since that is all relative training needs (a third of the RGB filter's work).
+//! The exponential is a polynomial `2^x` accurate to ~1e-6 relative, and taps whose exponent
+//! exceeds 24 are skipped (weight below `e^-24` of the kernel's); measured on a 256×128
+//! surrogate: 633 M → 378 M instructions (callgrind).
 //!
 //! # Contracts
 //! - Images are `width × height` row-major: colour, albedo and normal 3 values per pixel,
@@ -211,9 +212,10 @@ const MAX_EXPONENT: f32 = 24.0;
 
 /// `e^{-x}` for `0 <= x <= MAX_EXPONENT`, to ~1e-6 relative: `2^{-x log2 e}` split into an
 /// integer power (the exponent bits) and a degree-5 polynomial of the fraction (relative
-/// least-squares fit of `2^f` on `[0, 1)`, 2e-7; the rest is the rounding of `x log2 e`). Plain `f32` arithmetic without fused operations, so the bits are
-/// the same on every machine; a few times cheaper than the libm call it replaces, which was a
-/// sixth of the filter's instructions.
+/// least-squares fit of `2^f` on `[0, 1)`, 2e-7; the rest is the rounding of `x log2 e`).
+/// Plain `f32` arithmetic without fused operations, so the bits are the same on every
+/// machine; a few times cheaper than the libm call it replaces, which was a sixth of the
+/// filter's instructions.
 #[inline]
 fn exp_neg(x: f32) -> f32 {
     let t = -x * std::f32::consts::LOG2_E;
