@@ -134,7 +134,9 @@ fn check_stats(run: &Run, phases: &[(&str, u64)]) {
 
 fn cms_one_vs_three(backend: Backend) {
     let scene = scene_json("cornell-box/scene.json");
-    let est = serde_json::json!({ "kind": "cms" });
+    // The fits applied whatever their predicted gain, so the render phase controls vertices
+    // (a table-wide fallback would render it as `path`).
+    let est = serde_json::json!({ "kind": "cms", "min_image_gain": null });
     let spec = spec(&scene, est.clone(), 7);
     let one = run_job(backend, 1, &spec);
     let three = run_job(backend, 3, &spec);
@@ -150,6 +152,18 @@ fn cms_one_vs_three(backend: Backend) {
     );
     // cms with `relative` (the default): surrogate 0..1, train 1..17, render 17..24.
     check_stats(&one, &[("surrogate", 1), ("train", 16), ("render", 7)]);
+    let train = one.stats["phases"]
+        .as_array()
+        .expect("phases")
+        .iter()
+        .find(|p| p["name"] == "train")
+        .expect("train phase");
+    let gain = train["barrier"]["predicted_image_gain"].as_f64();
+    assert!(gain.is_some_and(|g| g > 0.0), "{train}");
+    assert!(
+        train["barrier"]["cells_solved"].as_u64() > Some(0),
+        "{train}"
+    );
     let img = imageio::read_exr_bytes(&one.exr).expect("exr decodes");
     let beauty = img.main_layer().expect("beauty");
     assert!(beauty.data.iter().any(|p| p[0] > 0.0));
@@ -314,7 +328,7 @@ fn bad_train_uploads_are_4xx_json_and_the_task_is_redone() {
 fn coordinator_restart_between_train_and_render_finishes_identically() {
     let mut farm = Farm::start(Backend::Sqlite);
     let scene = scene_json("cornell-box/scene.json");
-    let est = serde_json::json!({ "kind": "cms", "relative": false, "training_spp": 8 });
+    let est = serde_json::json!({ "kind": "cms", "relative": false, "training_spp": 8, "min_image_gain": null });
     let id = farm
         .client
         .submit(&spec_two_train_tiles(&scene, est.clone(), 13));
@@ -373,7 +387,7 @@ fn coordinator_restart_between_train_and_render_finishes_identically() {
 #[test]
 fn cms_on_two_coordinators_sharing_one_postgres() {
     let scene = scene_json("cornell-box/scene.json");
-    let est = serde_json::json!({ "kind": "cms" });
+    let est = serde_json::json!({ "kind": "cms", "min_image_gain": null });
     // Both coordinators may run a barrier; exactly one advances the job each time.
     let run = run_on_two_coordinators(&spec(&scene, est.clone(), 21), Duration::from_secs(300));
     assert!(run.exr == local_cv_exr(&scene, &est, &run.status.job));

@@ -393,6 +393,7 @@ async fn barrier(state: &AppState, job: &JobRow, phase: &PhaseRow) -> Result<Adv
                     cells_solved,
                     cells_fallback,
                     rejected_samples: solved.rejected,
+                    predicted_image_gain: solved.image_gain,
                 };
                 Ok((blob, stats))
             }

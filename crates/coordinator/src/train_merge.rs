@@ -211,7 +211,7 @@ mod tests {
             }
             t.insert(k + salt % 3, a);
         }
-        AccumulatorTable::Moments(t)
+        AccumulatorTable::Moments(t, Some(0.1 + 0.3 * salt as f64))
     }
 
     fn merged_at_barrier(tables: &[AccumulatorTable]) -> AccumulatorTable {

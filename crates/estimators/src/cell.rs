@@ -206,6 +206,8 @@ pub struct PartitionMoments<'a> {
     pub cross: &'a [f64],
     /// `b_k = Σ w F (λ_k/p)` per channel of the colour mode.
     pub b: &'a [f64],
+    /// `Σ w λ_k/p`.
+    pub g: f64,
 }
 
 /// Normal-equation sums of one spatial cell.
@@ -219,17 +221,22 @@ pub struct CellAccumulator {
     rejected: u64,
     weight_sum: f64,
     weight_sq_sum: f64,
+    /// `[Σ w y_c, Σ w y_c²]` per channel `c` of the colour mode (the first `2·C` entries),
+    /// for the predicted gain of a fit (see [`CellAccumulator::value_moments`]).
+    value: [f64; 2 * CHANNELS],
     /// Packed upper triangle (row-major, `j >= i`) of the `K × K` overlapping block.
     dense: Vec<f64>,
     /// `K × C` right-hand sides of the overlapping components.
     b_overlap: Vec<f64>,
+    /// `Σ w λ_j/p` of the `K` overlapping components (for centred residuals).
+    g_overlap: Vec<f64>,
     /// Sampled partition indices, strictly increasing.
     part_ids: Vec<u32>,
     /// Per entry of `part_ids`: the storage slot of its moments.
     part_slots: Vec<u32>,
     /// Per storage slot (first-touch order): accepted samples of the partition.
     part_counts: Vec<u64>,
-    /// Per storage slot: `[diag, cross_0..K, b_0..C]`.
+    /// Per storage slot: `[diag, cross_0..K, b_0..C, g]` with `g = Σ w λ_k/p`.
     part_data: Vec<f64>,
     /// Partition and storage slot of the most recently used partition (`u32::MAX` = none;
     /// hot-loop cache, not part of equality).
@@ -258,8 +265,10 @@ impl PartialEq for CellAccumulator {
             && self.rejected == o.rejected
             && self.weight_sum == o.weight_sum
             && self.weight_sq_sum == o.weight_sq_sum
+            && self.value == o.value
             && self.dense == o.dense
             && self.b_overlap == o.b_overlap
+            && self.g_overlap == o.g_overlap
             && self.part_ids == o.part_ids
             && self.part_slots.iter().zip(&o.part_slots).all(|(&a, &b)| {
                 let (a, b) = (a as usize, b as usize);
@@ -279,8 +288,10 @@ impl CellAccumulator {
             rejected: 0,
             weight_sum: 0.0,
             weight_sq_sum: 0.0,
+            value: [0.0; 2 * CHANNELS],
             dense: vec![0.0; k * (k + 1) / 2],
             b_overlap: vec![0.0; k * color.channels()],
+            g_overlap: vec![0.0; k],
             part_ids: Vec::new(),
             part_slots: Vec::new(),
             part_counts: Vec::new(),
@@ -319,6 +330,14 @@ impl CellAccumulator {
         self.weight_sum
     }
 
+    /// `(Σ w y, Σ w y²)` of channel `ch` of the colour mode (`y` = the sample value `F`,
+    /// or its channel mean for [`ColorMode::Mono`]): with `Σ w`, the weighted variance of
+    /// the plain estimator in the cell, against which a fit's residual is measured.
+    pub fn value_moments(&self, ch: usize) -> (f64, f64) {
+        let c = self.color.channels();
+        (self.value[ch], self.value[c + ch])
+    }
+
     /// Kish effective sample count `(Σ w)² / Σ w²` (0 when empty).
     pub fn effective_samples(&self) -> f64 {
         if self.weight_sq_sum > 0.0 {
@@ -341,10 +360,10 @@ impl CellAccumulator {
     }
 
     fn stride(&self) -> usize {
-        1 + self.layout.overlapping as usize + self.color.channels()
+        2 + self.layout.overlapping as usize + self.color.channels()
     }
 
-    /// The moments `[diag, cross_0..K, b_0..C]` of storage slot `slot`.
+    /// The moments `[diag, cross_0..K, b_0..C, g]` of storage slot `slot`.
     fn entry(&self, slot: usize) -> &[f64] {
         let stride = self.stride();
         &self.part_data[slot * stride..(slot + 1) * stride]
@@ -359,6 +378,7 @@ impl CellAccumulator {
             diag: d[0],
             cross: &d[1..1 + k],
             b: &d[1 + k..1 + k + c],
+            g: d[1 + k + c],
         }
     }
 
@@ -381,6 +401,11 @@ impl CellAccumulator {
     pub fn b_overlapping(&self, i: usize) -> &[f64] {
         let c = self.color.channels();
         &self.b_overlap[i * c..(i + 1) * c]
+    }
+
+    /// `Σ w λ_i/p` of overlapping component `i`.
+    pub fn g_overlapping(&self, i: usize) -> f64 {
+        self.g_overlap[i]
     }
 
     /// The sampled partitions in increasing index order.
@@ -566,7 +591,10 @@ impl CellAccumulator {
         };
         let max_y = y.iter().fold(0.0f64, |m, v| m.max(v.abs()));
         // Every product added below is bounded by these two; NaN ratios fail too.
-        if !(w * max_r * max_r).is_finite() || !(w * max_r * max_y).is_finite() {
+        if !(w * max_r * max_r).is_finite()
+            || !(w * max_r * max_y).is_finite()
+            || !(w * max_y * max_y).is_finite()
+        {
             return Err(SampleRejection::NonFinite);
         }
 
@@ -574,6 +602,11 @@ impl CellAccumulator {
         self.weight_sum += w;
         self.weight_sq_sum += w * w;
         let c = y.len();
+        for (ch, &yc) in y.iter().enumerate() {
+            let wy = w * yc;
+            self.value[ch] += wy;
+            self.value[c + ch] += wy * yc;
+        }
         for i in 0..k {
             let wri = w * (lam[i] * inv_p);
             let row = row_start(k, i);
@@ -583,9 +616,10 @@ impl CellAccumulator {
             for (ch, &yc) in y.iter().enumerate() {
                 self.b_overlap[i * c + ch] += wri * yc;
             }
+            self.g_overlap[i] += wri;
         }
         if let Some((id, rk)) = part {
-            let stride = 1 + k + c;
+            let stride = 2 + k + c;
             let slot = self.slot_for(id);
             self.part_counts[slot] += 1;
             let d = &mut self.part_data[slot * stride..(slot + 1) * stride];
@@ -597,6 +631,7 @@ impl CellAccumulator {
             for (ch, &yc) in y.iter().enumerate() {
                 d[1 + k + ch] += wrk * yc;
             }
+            d[1 + k + c] += wrk;
         }
         Ok(())
     }
@@ -612,10 +647,16 @@ impl CellAccumulator {
         self.rejected += other.rejected;
         self.weight_sum += other.weight_sum;
         self.weight_sq_sum += other.weight_sq_sum;
+        for (a, b) in self.value.iter_mut().zip(&other.value) {
+            *a += b;
+        }
         for (a, b) in self.dense.iter_mut().zip(&other.dense) {
             *a += b;
         }
         for (a, b) in self.b_overlap.iter_mut().zip(&other.b_overlap) {
+            *a += b;
+        }
+        for (a, b) in self.g_overlap.iter_mut().zip(&other.g_overlap) {
             *a += b;
         }
         if other.part_ids.is_empty() {
@@ -693,8 +734,10 @@ impl CellAccumulator {
 
 /// Magic bytes opening an encoded accumulator.
 pub const MAGIC: [u8; 4] = *b"CVAC";
-/// Current encoding version.
-pub const VERSION: u16 = 1;
+/// Current encoding version (2 added the value moments and the component sums `Σ w λ/p`;
+/// version 1 is still read, with those zero, so its cells remove no variance in
+/// [`crate::solve::variance_reduction`]).
+pub const VERSION: u16 = 2;
 /// Size of the fixed header in bytes.
 const HEADER_LEN: usize = 4 + 2 + 1 + 1 + 4 + 4 + 8 + 8 + 8 + 8;
 
@@ -703,9 +746,10 @@ impl CellAccumulator {
     ///
     /// Layout: magic `CVAC`, `u16` version, `u8` colour (0 RGB, 1 mono), `u8` 0,
     /// `u32` P, `u32` K, `u64` samples, `u64` rejected, `f64` Σw, `f64` Σw²,
-    /// `K(K+1)/2` `f64` (packed upper dense block), `K·C` `f64` (overlapping `b`),
-    /// `u32` entry count, then per sampled partition `u32` index, `u64` count and
-    /// `1 + K + C` `f64` (diag, cross, `b`). Only sampled partitions are written.
+    /// `C` `f64` Σwy, `C` `f64` Σwy², `K(K+1)/2` `f64` (packed upper dense block), `K·C` `f64`
+    /// (overlapping `b`), `K` `f64` (overlapping `Σ w λ/p`), `u32` entry count, then per
+    /// sampled partition `u32` index, `u64` count and `2 + K + C` `f64` (diag, cross, `b`,
+    /// `Σ w λ/p`). Only sampled partitions are written.
     pub fn encode(&self) -> Vec<u8> {
         let mut out = Vec::with_capacity(self.encoded_len());
         out.extend_from_slice(&MAGIC);
@@ -721,7 +765,15 @@ impl CellAccumulator {
         out.extend_from_slice(&self.rejected.to_le_bytes());
         out.extend_from_slice(&self.weight_sum.to_le_bytes());
         out.extend_from_slice(&self.weight_sq_sum.to_le_bytes());
-        for v in self.dense.iter().chain(&self.b_overlap) {
+        for v in &self.value[..2 * self.color.channels()] {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        for v in self
+            .dense
+            .iter()
+            .chain(&self.b_overlap)
+            .chain(&self.g_overlap)
+        {
             out.extend_from_slice(&v.to_le_bytes());
         }
         out.extend_from_slice(&(self.part_ids.len() as u32).to_le_bytes());
@@ -738,7 +790,10 @@ impl CellAccumulator {
     /// Exact length of [`encode`](Self::encode)'s output.
     pub fn encoded_len(&self) -> usize {
         HEADER_LEN
-            + 8 * (self.dense.len() + self.b_overlap.len())
+            + 8 * (2 * self.color.channels()
+                + self.dense.len()
+                + self.b_overlap.len()
+                + self.g_overlap.len())
             + 4
             + self.part_ids.len() * (12 + 8 * self.stride())
     }
@@ -750,7 +805,7 @@ impl CellAccumulator {
             return Err(CellError::BadMagic);
         }
         let version = r.u16()?;
-        if version != VERSION {
+        if !(1..=VERSION).contains(&version) {
             return Err(CellError::UnsupportedVersion(version));
         }
         let color = match r.u8()? {
@@ -769,8 +824,22 @@ impl CellAccumulator {
         acc.rejected = r.u64()?;
         acc.weight_sum = r.nonneg_f64()?;
         acc.weight_sq_sum = r.nonneg_f64()?;
+        if version >= 2 {
+            let c = color.channels();
+            for v in &mut acc.value[..c] {
+                *v = r.finite_f64()?;
+            }
+            for v in &mut acc.value[c..2 * c] {
+                *v = r.nonneg_f64()?;
+            }
+        }
         for v in acc.dense.iter_mut().chain(acc.b_overlap.iter_mut()) {
             *v = r.finite_f64()?;
+        }
+        if version >= 2 {
+            for v in acc.g_overlap.iter_mut() {
+                *v = r.finite_f64()?;
+            }
         }
         let k = overlapping as usize;
         for i in 0..k {
@@ -781,7 +850,9 @@ impl CellAccumulator {
         }
         let entries = r.u32()? as u64;
         let stride = acc.stride();
-        let entry_len = 12 + 8 * stride as u64;
+        // Version 1 entries have no `Σ w λ/p` (read as 0).
+        let stored = if version >= 2 { stride } else { stride - 1 };
+        let entry_len = 12 + 8 * stored as u64;
         let remaining = (bytes.len() - r.pos) as u64;
         if entries > u64::from(partitions) || entries * entry_len > remaining {
             return Err(CellError::BadEntryCount(entries));
@@ -804,10 +875,12 @@ impl CellAccumulator {
             acc.part_ids.push(id);
             acc.part_counts.push(count);
             acc.part_data.push(r.nonneg_f64()?);
-            for _ in 1..stride {
+            for _ in 1..stride - 1 {
                 let v = r.finite_f64()?;
                 acc.part_data.push(v);
             }
+            acc.part_data
+                .push(if version >= 2 { r.finite_f64()? } else { 0.0 });
         }
         if r.pos != bytes.len() {
             return Err(CellError::Trailing(bytes.len() - r.pos));

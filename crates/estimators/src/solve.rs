@@ -71,6 +71,11 @@ pub struct SolvePolicy {
     pub min_partition_samples: u64,
     /// Largest accepted condition estimate of the scaled, regularised system.
     pub max_condition: f64,
+    /// Smallest predicted image gain of a table's fits ([`crate::table::predicted_image_gain`])
+    /// for them to be applied; below it every cell of the table falls back
+    /// ([`FallbackReason::LowImageGain`]). `-∞` (the default) never falls back for this
+    /// reason. Used by [`crate::table::AccumulatorTable::solve`]; [`solve`] itself ignores it.
+    pub min_image_gain: f64,
 }
 
 impl Default for SolvePolicy {
@@ -81,6 +86,7 @@ impl Default for SolvePolicy {
             min_effective_samples: 4.0,
             min_partition_samples: 1,
             max_condition: 1e12,
+            min_image_gain: f64::NEG_INFINITY,
         }
     }
 }
@@ -102,6 +108,9 @@ pub enum FallbackReason {
     IllConditioned,
     /// A coefficient came out NaN or infinite.
     NonFinite,
+    /// The fits of the whole table are predicted to remove less of the image's variance than
+    /// [`SolvePolicy::min_image_gain`] (a decision for the table, not for this cell).
+    LowImageGain,
 }
 
 /// Outcome of a cell solve.
@@ -341,6 +350,65 @@ impl CellCoefficients {
         let t = self.cv_term(sample);
         [value[0] - t[0], value[1] - t[1], value[2] - t[2]]
     }
+}
+
+/// In-sample variance the coefficients `co` remove from the training samples of `acc`:
+/// `Σ_c (R₀ − R)` over the channels of the colour mode, with the plain estimator's weighted
+/// sum of squares about its mean `R₀ = Σwy² − (Σwy)²/Σw` and the controlled one's about
+/// its own mean, `R = Σw(y − αᵀg)² − (Σw(y − αᵀg))²/Σw` with
+/// `Σw(y − αᵀg)² = Σwy² − 2αᵀb + αᵀAα` (`g = λ/p`, [Hua eq. 21]) and
+/// `Σw(y − αᵀg) = Σwy − αᵀΣwg`. Centred because a constant added to every sample's value
+/// does not change the estimator's variance, and the ridge shrinks `α` toward zero, not
+/// toward the shift [Hua eq. 14] that is equivalent to it. In the units of the training weights [Hua eq. 25, 29]: summed
+/// over the cells of a table and divided by the image's own sum of squares
+/// ([`crate::table::ImageVariance`]) it is the fraction of the image's per-sample variance
+/// the fits remove. `0` for the plain estimator (every `α = 0`, whose estimate is the
+/// weighted mean's: `R₀` is its sum, not the uncentred one).
+pub fn variance_reduction(acc: &CellAccumulator, co: &CellCoefficients) -> f64 {
+    let c = acc.color().channels();
+    let k = acc.layout().overlapping as usize;
+    let sw = acc.weight_sum();
+    let plain = co
+        .partition_alpha
+        .iter()
+        .chain(&co.overlapping_alpha)
+        .all(|&a| a == 0.0);
+    if plain || !(sw > 0.0) || co.layout != acc.layout() || co.color != acc.color() {
+        return 0.0;
+    }
+    let mut total = 0.0;
+    for ch in 0..c {
+        let (sy, syy) = acc.value_moments(ch);
+        if syy == 0.0 {
+            // Every value zero, or moments not recorded (a version-1 accumulator): nothing
+            // to remove that the sums could show.
+            continue;
+        }
+        let ao = |j: usize| co.overlapping_alpha[j * c + ch];
+        // αᵀb and αᵀAα: the overlapping block, then each fitted partition's diagonal and
+        // cross terms.
+        let (mut ab, mut aa, mut ag) = (0.0, 0.0, 0.0);
+        for i in 0..k {
+            ab += ao(i) * acc.b_overlapping(i)[ch];
+            ag += ao(i) * acc.g_overlapping(i);
+            for j in 0..k {
+                aa += ao(i) * acc.dense(i, j) * ao(j);
+            }
+        }
+        for (s, &id) in co.partition_ids.iter().enumerate() {
+            let Some(p) = acc.partition(id) else { continue };
+            let a = co.partition_alpha[s * c + ch];
+            let cross: f64 = (0..k).map(|j| p.cross[j] * ao(j)).sum();
+            ab += a * p.b[ch];
+            ag += a * p.g;
+            aa += a * (a * p.diag + 2.0 * cross);
+        }
+        let r0 = (syy - sy * sy / sw).max(0.0);
+        let mean = sy - ag;
+        let r = (syy - 2.0 * ab + aa - mean * mean / sw).max(0.0);
+        total += r0 - r;
+    }
+    if total.is_finite() { total } else { 0.0 }
 }
 
 /// Common pre-checks; returns the diagnostics skeleton or the fallback coefficients.
@@ -610,7 +678,7 @@ pub const COEFFICIENTS_MAGIC: [u8; 4] = *b"CVCO";
 /// Encoding version of [`CellCoefficients`].
 pub const COEFFICIENTS_VERSION: u16 = 1;
 
-const FALLBACK_CODES: [FallbackReason; 7] = [
+const FALLBACK_CODES: [FallbackReason; 8] = [
     FallbackReason::Empty,
     FallbackReason::TooFewSamples,
     FallbackReason::TooFewEffectiveSamples,
@@ -618,6 +686,7 @@ const FALLBACK_CODES: [FallbackReason; 7] = [
     FallbackReason::NotPositiveDefinite,
     FallbackReason::IllConditioned,
     FallbackReason::NonFinite,
+    FallbackReason::LowImageGain,
 ];
 
 impl CellCoefficients {

@@ -155,6 +155,9 @@ impl OcvOptions {
     }
 }
 
+/// Default [`CmsOptions::min_image_gain`].
+pub const DEFAULT_MIN_IMAGE_GAIN: f64 = 0.002;
+
 /// Options of the `cms` estimator [Hua 2023].
 ///
 /// | parameter | type | default | meaning |
@@ -168,6 +171,7 @@ impl OcvOptions {
 /// | `ridge` | f64 | `1` | relative Tikhonov regularisation of each cell system: `A + ridge·diag(A)` shrinks `α` toward the base estimator (`path` with the default `base`); 1 halves an uncorrelated coefficient. Chosen by equal-spp measurements (`docs/bench/README.md`): the unshrunk fit loses to `path` on direct lighting |
 /// | `min_samples` | u64 | 16 | cells with fewer training samples fall back to the plain estimator |
 /// | `base` | `"mis"` \| `"balance"` | `"mis"` | base estimator (`α ≡ 0`): the job's MIS heuristic (= `path`) or balance [`CvBase`] |
+/// | `min_image_gain` | f64 \| null | `0.002` | the fits are applied only when they are predicted to remove at least this fraction of the image's per-sample (relative) variance, measured on the training samples ([`crate::table::predicted_image_gain`]); below it every cell falls back and the render phase is traced as `path`. null always applies them. Chosen by equal-spp and equal-time measurements (`docs/bench/README.md`) |
 /// | `min_depth` | u32 | `1` | the CV is trained and applied only at path vertices of at least this depth (0 = the camera hit); shallower vertices use the base estimator. With 1, depth-2 (direct-lighting) jobs are exactly `path`. Chosen by equal-spp measurements (`docs/bench/README.md`): the CV at the camera hit costs more than it gains against the stratified (Sobol) pixel samples of the base estimator |
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -192,6 +196,8 @@ pub struct CmsOptions {
     pub base: CvBase,
     /// Shallowest vertex depth the CV is trained and applied at.
     pub min_depth: u32,
+    /// Smallest predicted image gain for the fits to be applied; `None` always applies them.
+    pub min_image_gain: Option<f64>,
 }
 
 impl Default for CmsOptions {
@@ -207,6 +213,7 @@ impl Default for CmsOptions {
             min_samples: 16,
             base: CvBase::Mis,
             min_depth: 1,
+            min_image_gain: Some(DEFAULT_MIN_IMAGE_GAIN),
         }
     }
 }
@@ -352,6 +359,17 @@ impl PhasedEstimator {
         {
             return Err(("ridge", "must be finite and ≥ 0"));
         }
+        if let Self::Cms(CmsOptions {
+            min_image_gain: Some(g),
+            ..
+        }) = self
+            && !g.is_finite()
+        {
+            return Err((
+                "min_image_gain",
+                "must be finite (or null to always apply the fits)",
+            ));
+        }
         if let Some(g) = grid {
             if g.contains(&0) {
                 return Err(("grid_resolution", "every axis needs at least one cell"));
@@ -369,6 +387,7 @@ impl PhasedEstimator {
             Self::Cms(o) => crate::solve::SolvePolicy {
                 ridge: o.ridge,
                 min_samples: o.min_samples,
+                min_image_gain: o.min_image_gain.unwrap_or(f64::NEG_INFINITY),
                 ..crate::solve::SolvePolicy::default()
             },
             Self::OptimalMis(o) => crate::solve::SolvePolicy {

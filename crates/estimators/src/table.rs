@@ -2,13 +2,15 @@
 //! protocol's cell-accumulator frames and of the coefficient table the coordinator
 //! broadcasts.
 //!
-//! # Format (version 1, little endian)
+//! # Format (version 2, little endian)
 //! magic `CVCT`, `u16` version, `u16` kind ([`KIND_CELL_ACCUMULATORS`],
 //! [`KIND_MEAN_CONTRIBUTIONS`], [`KIND_COEFFICIENTS`]), `u32` record count, then per record
 //! `u64` cell key, `u32` byte length and the record's own encoding
 //! ([`CellAccumulator::encode`], [`MeanContributionAccumulator::encode`],
-//! [`CellCoefficients::encode`]). Keys are strictly increasing, so one table has one
-//! canonical encoding.
+//! [`CellCoefficients::encode`]), then one `f64`: the image variance of an accumulator
+//! table ([`AccumulatorTable::Moments`]), `NaN` for unknown and for the other kinds. Keys
+//! are strictly increasing, so one table has one canonical encoding. Version 1 (read, not
+//! written) had no trailing `f64`: its image variance is unknown.
 //!
 //! # Contracts
 //! - Cell keys are the caller's (e.g. a linear index into the sparse grid); this module only
@@ -21,12 +23,14 @@ use std::collections::BTreeMap;
 
 use crate::cell::{CellAccumulator, CellError, Reader};
 use crate::perlight::MeanContributionAccumulator;
-use crate::solve::{CellCoefficients, SolvePolicy, solve};
+use crate::solve::{
+    CellCoefficients, FallbackReason, SolvePolicy, SolveStatus, solve, variance_reduction,
+};
 
 /// Magic bytes of an encoded table.
 pub const TABLE_MAGIC: [u8; 4] = *b"CVCT";
 /// Table encoding version.
-pub const TABLE_VERSION: u16 = 1;
+pub const TABLE_VERSION: u16 = 2;
 /// Kind tag: [`CellAccumulator`] records (`cms`, `optimal_mis`).
 pub const KIND_CELL_ACCUMULATORS: u16 = 1;
 /// Kind tag: [`MeanContributionAccumulator`] records (`per_light_cv`).
@@ -92,8 +96,14 @@ impl CellRecord for CellCoefficients {
     }
 }
 
-/// Encodes a table (keys ascending by construction of the map).
+/// Encodes a table (keys ascending by construction of the map) with an unknown image
+/// variance.
 pub fn encode_table<T: CellRecord>(table: &BTreeMap<u64, T>) -> Vec<u8> {
+    encode_table_with(table, None)
+}
+
+/// Encodes a table and its image variance (`None`: unknown, written as `NaN`).
+pub fn encode_table_with<T: CellRecord>(table: &BTreeMap<u64, T>, image: Option<f64>) -> Vec<u8> {
     let mut out = Vec::new();
     out.extend_from_slice(&TABLE_MAGIC);
     out.extend_from_slice(&TABLE_VERSION.to_le_bytes());
@@ -105,6 +115,7 @@ pub fn encode_table<T: CellRecord>(table: &BTreeMap<u64, T>) -> Vec<u8> {
         out.extend_from_slice(&(bytes.len() as u32).to_le_bytes());
         out.extend_from_slice(&bytes);
     }
+    out.extend_from_slice(&image.unwrap_or(f64::NAN).to_le_bytes());
     out
 }
 
@@ -115,7 +126,7 @@ pub fn table_kind(bytes: &[u8]) -> Result<u16, CellError> {
         return Err(CellError::BadMagic);
     }
     let version = r.u16()?;
-    if version != TABLE_VERSION {
+    if !(1..=TABLE_VERSION).contains(&version) {
         return Err(CellError::UnsupportedVersion(version));
     }
     r.u16()
@@ -123,11 +134,21 @@ pub fn table_kind(bytes: &[u8]) -> Result<u16, CellError> {
 
 /// Decodes and validates a table of `T` records.
 pub fn decode_table<T: CellRecord>(bytes: &[u8]) -> Result<BTreeMap<u64, T>, CellError> {
+    decode_table_with(bytes).map(|(t, _)| t)
+}
+
+/// Decodes and validates a table of `T` records and its image variance (`None` when
+/// unknown: `NaN`, or a version-1 table). A negative or infinite variance is refused.
+pub fn decode_table_with<T: CellRecord>(
+    bytes: &[u8],
+) -> Result<(BTreeMap<u64, T>, Option<f64>), CellError> {
     if table_kind(bytes)? != T::KIND {
         return Err(CellError::BadHeader);
     }
     let mut r = Reader::new(bytes);
-    r.take(8)?;
+    r.take(4)?;
+    let version = r.u16()?;
+    r.take(2)?;
     let count = u64::from(r.u32()?);
     // Every record needs at least its 12-byte key and length.
     if count * 12 > r.remaining() as u64 {
@@ -146,10 +167,24 @@ pub fn decode_table<T: CellRecord>(bytes: &[u8]) -> Result<BTreeMap<u64, T>, Cel
         let rec = T::decode_record(r.take(len)?)?;
         table.insert(key, rec);
     }
+    let image = if version >= 2 {
+        let at = r.pos();
+        let v = f64::from_le_bytes(
+            r.take(8)?
+                .try_into()
+                .map_err(|_| CellError::InvalidValue(at))?,
+        );
+        if !(v.is_nan() || (v >= 0.0 && v.is_finite())) {
+            return Err(CellError::InvalidValue(at));
+        }
+        (!v.is_nan()).then_some(v)
+    } else {
+        None
+    };
     if !r.at_end() {
         return Err(CellError::Trailing(r.remaining()));
     }
-    Ok(table)
+    Ok((table, image))
 }
 
 /// Merges `from` into `into` key by key (records of new keys are inserted).
@@ -186,8 +221,14 @@ pub fn solve_table(
 /// the coordinator merges (in canonical task order) and solves.
 #[derive(Clone, Debug, PartialEq)]
 pub enum AccumulatorTable {
-    /// [`CellAccumulator`] records (`cms`, `optimal_mis`).
-    Moments(BTreeMap<u64, CellAccumulator>),
+    /// [`CellAccumulator`] records (`cms`, `optimal_mis`) and the image variance of the
+    /// training samples behind them: `Σ_pixels Σ_samples Σ_c w_p (L − L̄_p)²`, each pixel's
+    /// samples `L` about their own mean, weighted as a training sample of that pixel is
+    /// (`w_p = 1/(surrogate_p + ε)²` with relative weights [Hua eq. 25], else 1), i.e. the
+    /// same units as the cells' sums ([`crate::solve::variance_reduction`]). `None` when
+    /// unknown (a version-1 table, or a merge with one); then no
+    /// [`SolvePolicy::min_image_gain`] decision is made.
+    Moments(BTreeMap<u64, CellAccumulator>, Option<f64>),
     /// [`MeanContributionAccumulator`] records (`per_light_cv`).
     Mean(BTreeMap<u64, MeanContributionAccumulator>),
 }
@@ -199,6 +240,31 @@ pub struct SolvedTable {
     pub coefficients: BTreeMap<u64, CellCoefficients>,
     /// Training samples rejected as non-finite, over all cells.
     pub rejected: u64,
+    /// Predicted image gain of the fits ([`predicted_image_gain`]) when the table's image
+    /// variance was known (not part of the wire encoding).
+    pub image_gain: Option<f64>,
+}
+
+/// Predicted fraction of the image's per-sample variance that the fits remove:
+/// `Σ_cells variance_reduction / image`, summed in key order ([`variance_reduction`];
+/// in-sample, over the training samples). `None` without a positive image variance.
+///
+/// The vertex-level fit of a cell only sees the variance of the vertex estimates it
+/// controls, not how much of a pixel's error they make up: a scene whose noise is at
+/// uncontrolled vertices (the camera hit, with `min_depth` 1) or in the path prefix gets a
+/// small figure however well the cells fit. Measured against the equal-spp relMSE gain in
+/// `docs/bench/README.md`.
+pub fn predicted_image_gain(
+    cells: &BTreeMap<u64, CellAccumulator>,
+    coefficients: &BTreeMap<u64, CellCoefficients>,
+    image: Option<f64>,
+) -> Option<f64> {
+    let image = image.filter(|&v| v > 0.0)?;
+    let reduction: f64 = cells
+        .iter()
+        .filter_map(|(k, a)| Some(variance_reduction(a, coefficients.get(k)?)))
+        .sum();
+    Some(reduction / image)
 }
 
 impl SolvedTable {
@@ -212,7 +278,7 @@ impl AccumulatorTable {
     /// An empty table of `kind` ([`KIND_CELL_ACCUMULATORS`] or [`KIND_MEAN_CONTRIBUTIONS`]).
     pub fn empty(kind: u16) -> Result<Self, CellError> {
         match kind {
-            KIND_CELL_ACCUMULATORS => Ok(Self::Moments(BTreeMap::new())),
+            KIND_CELL_ACCUMULATORS => Ok(Self::Moments(BTreeMap::new(), Some(0.0))),
             KIND_MEAN_CONTRIBUTIONS => Ok(Self::Mean(BTreeMap::new())),
             _ => Err(CellError::BadHeader),
         }
@@ -221,7 +287,7 @@ impl AccumulatorTable {
     /// The kind tag.
     pub fn kind(&self) -> u16 {
         match self {
-            Self::Moments(_) => KIND_CELL_ACCUMULATORS,
+            Self::Moments(..) => KIND_CELL_ACCUMULATORS,
             Self::Mean(_) => KIND_MEAN_CONTRIBUTIONS,
         }
     }
@@ -229,7 +295,7 @@ impl AccumulatorTable {
     /// Number of cells.
     pub fn len(&self) -> usize {
         match self {
-            Self::Moments(t) => t.len(),
+            Self::Moments(t, _) => t.len(),
             Self::Mean(t) => t.len(),
         }
     }
@@ -242,7 +308,7 @@ impl AccumulatorTable {
     /// Largest cell key, if any.
     pub fn max_key(&self) -> Option<u64> {
         match self {
-            Self::Moments(t) => t.keys().next_back().copied(),
+            Self::Moments(t, _) => t.keys().next_back().copied(),
             Self::Mean(t) => t.keys().next_back().copied(),
         }
     }
@@ -250,7 +316,10 @@ impl AccumulatorTable {
     /// Decodes a table of either accumulator kind (validating everything).
     pub fn decode(bytes: &[u8]) -> Result<Self, CellError> {
         match table_kind(bytes)? {
-            KIND_CELL_ACCUMULATORS => Ok(Self::Moments(decode_table(bytes)?)),
+            KIND_CELL_ACCUMULATORS => {
+                let (t, image) = decode_table_with(bytes)?;
+                Ok(Self::Moments(t, image))
+            }
             KIND_MEAN_CONTRIBUTIONS => Ok(Self::Mean(decode_table(bytes)?)),
             _ => Err(CellError::BadHeader),
         }
@@ -259,7 +328,7 @@ impl AccumulatorTable {
     /// The wire encoding.
     pub fn encode(&self) -> Vec<u8> {
         match self {
-            Self::Moments(t) => encode_table(t),
+            Self::Moments(t, image) => encode_table_with(t, *image),
             Self::Mean(t) => encode_table(t),
         }
     }
@@ -268,7 +337,11 @@ impl AccumulatorTable {
     /// [`CellError::LayoutMismatch`].
     pub fn merge(&mut self, other: &Self) -> Result<(), CellError> {
         match (self, other) {
-            (Self::Moments(a), Self::Moments(b)) => merge_tables(a, b),
+            (Self::Moments(a, ia), Self::Moments(b, ib)) => {
+                merge_tables(a, b)?;
+                *ia = ia.zip(*ib).map(|(x, y)| x + y);
+                Ok(())
+            }
             (Self::Mean(a), Self::Mean(b)) => merge_tables(a, b),
             _ => Err(CellError::LayoutMismatch),
         }
@@ -276,7 +349,10 @@ impl AccumulatorTable {
 
     /// Solves every cell ([`solve`] for moments [Hua eq. 32–33], the mean contributions for
     /// `per_light_cv` [Hua §7.2]) on up to `threads` threads. Cells are independent, so the
-    /// result does not depend on `threads`.
+    /// result does not depend on `threads`. For moments with a known image variance the
+    /// table's [`predicted_image_gain`] is recorded, and when it is below
+    /// [`SolvePolicy::min_image_gain`] every fitted cell falls back
+    /// ([`FallbackReason::LowImageGain`]): the render then pays no CV work anywhere.
     pub fn solve(&self, policy: &SolvePolicy, threads: usize) -> SolvedTable {
         fn par<T: Sync>(
             cells: &BTreeMap<u64, T>,
@@ -313,7 +389,23 @@ impl AccumulatorTable {
             out
         }
         match self {
-            Self::Moments(t) => par(t, threads, |a| (solve(a, policy), a.rejected())),
+            Self::Moments(t, image) => {
+                let mut out = par(t, threads, |a| (solve(a, policy), a.rejected()));
+                out.image_gain = predicted_image_gain(t, &out.coefficients, *image);
+                if let Some(g) = out.image_gain
+                    && policy.min_image_gain > f64::NEG_INFINITY
+                    && !(g >= policy.min_image_gain)
+                {
+                    for co in out.coefficients.values_mut() {
+                        if !co.is_fallback() {
+                            let mut d = *co.diagnostics();
+                            d.status = SolveStatus::Fallback(FallbackReason::LowImageGain);
+                            *co = CellCoefficients::zero(co.layout(), co.color(), d);
+                        }
+                    }
+                }
+                out
+            }
             Self::Mean(t) => par(t, threads, |a| {
                 (
                     crate::perlight::mean_contribution_coefficients(a),
@@ -365,5 +457,46 @@ mod tests {
         let cb = encode_table(&coeffs);
         let back: BTreeMap<u64, CellCoefficients> = decode_table(&cb).unwrap();
         assert_eq!(encode_table(&back), cb);
+    }
+
+    #[test]
+    fn the_image_variance_rides_with_the_table_and_unknown_stays_unknown() {
+        let t: BTreeMap<u64, CellAccumulator> = [(5, acc(1.0)), (9, acc(2.0))].into();
+        let a = AccumulatorTable::Moments(t.clone(), Some(0.75));
+        let bytes = a.encode();
+        assert_eq!(AccumulatorTable::decode(&bytes).unwrap(), a);
+        for n in 0..bytes.len() {
+            assert!(AccumulatorTable::decode(&bytes[..n]).is_err());
+        }
+        // Version 1 (no trailing f64): unknown.
+        let mut v1 = bytes[..bytes.len() - 8].to_vec();
+        v1[4..6].copy_from_slice(&1u16.to_le_bytes());
+        let old = AccumulatorTable::decode(&v1).unwrap();
+        assert_eq!(old, AccumulatorTable::Moments(t.clone(), None));
+        // A negative or infinite variance is refused; NaN is unknown.
+        let at = bytes.len() - 8;
+        for (v, ok) in [
+            (-1.0, false),
+            (f64::INFINITY, false),
+            (f64::NAN, true),
+            (0.0, true),
+        ] {
+            let mut b = bytes.clone();
+            b[at..].copy_from_slice(&f64::to_le_bytes(v));
+            assert_eq!(AccumulatorTable::decode(&b).is_ok(), ok, "{v}");
+        }
+        // Merges add the variances in order; one unknown makes the sum unknown.
+        let mut m = AccumulatorTable::empty(KIND_CELL_ACCUMULATORS).unwrap();
+        m.merge(&a).unwrap();
+        m.merge(&AccumulatorTable::Moments(t.clone(), Some(0.5)))
+            .unwrap();
+        assert!(matches!(m, AccumulatorTable::Moments(_, Some(v)) if v == 1.25));
+        m.merge(&old).unwrap();
+        assert!(matches!(m, AccumulatorTable::Moments(_, None)));
+        // Coefficient and mean tables carry no variance (NaN) and still decode strictly.
+        let co = solve_table(&t, &SolvePolicy::default());
+        let cb = encode_table(&co);
+        assert!(f64::from_le_bytes(cb[cb.len() - 8..].try_into().unwrap()).is_nan());
+        assert_eq!(decode_table_with::<CellCoefficients>(&cb).unwrap().1, None);
     }
 }

@@ -7,9 +7,12 @@ use common::{Pdf, Setup, mean_var, sum3};
 use estimators::cell::{CellAccumulator, ColorMode, ComponentLayout, CvSample, training_weight};
 use estimators::solve::{
     CellCoefficients, FallbackReason, SolvePolicy, SolveStatus, solve, solve_dense,
+    variance_reduction,
 };
+use estimators::table::{AccumulatorTable, encode_table, predicted_image_gain, solve_table};
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
+use std::collections::BTreeMap;
 
 fn poly(x: f64) -> [f64; 3] {
     [x * x * x + 0.5, 2.0 * x, (std::f64::consts::PI * x).sin()]
@@ -849,4 +852,253 @@ fn negative_cv_outliers_stay_finite_and_unbiased() {
             truth[c]
         );
     }
+}
+
+// ----------------------------------------------------------------------------------------
+// Variance reduction, the predicted image gain and the `LowImageGain` fallback.
+
+/// One recorded sample of a random cell: weight, value, pdf, partition, overlapping λ.
+type Recorded = (f64, [f64; 3], f64, Option<(u32, f64)>, Vec<f64>);
+
+/// A random cell with every sample kept, as the renderer's are: the density is the mixture
+/// `p = ½ Σ_j λ_j + ½ λ_partition` of the components (so a constant is a combination of
+/// the ratios `λ/p`), the first overlapping λ never zero; the values correlated with the
+/// ratios by `slope` (0: pure noise).
+fn recorded_cell(p: u32, k: u32, n: usize, seed: u64, slope: f64) -> Vec<Recorded> {
+    let mut rng = Pcg64::seed_from_u64(seed);
+    (0..n)
+        .map(|_| {
+            let lam: Vec<f64> = (0..k)
+                .map(|j| {
+                    if j > 0 && rng.random::<f64>() < 0.2 {
+                        0.0
+                    } else {
+                        rng.random::<f64>() * 3.0 + 0.05
+                    }
+                })
+                .collect();
+            let part = (p > 0 && (k == 0 || rng.random::<f64>() < 0.9))
+                .then(|| (rng.random_range(0..p), rng.random::<f64>() * 5.0 + 0.01));
+            let pdf = lam.iter().sum::<f64>() * 0.5 + part.map_or(0.0, |q| q.1) * 0.5;
+            let g = (lam.first().copied().unwrap_or(0.0) + part.map_or(0.0, |q| q.1)) / pdf;
+            let w = rng.random::<f64>() + 0.1;
+            let v = [
+                rng.random::<f64>() + slope * g,
+                rng.random::<f64>() * 2.0 - slope * g,
+                rng.random::<f64>() - 0.5,
+            ];
+            (w, v, pdf, part, lam)
+        })
+        .collect()
+}
+
+fn accumulate(samples: &[Recorded], p: u32, k: u32, color: ColorMode) -> CellAccumulator {
+    let mut acc = CellAccumulator::new(ComponentLayout::new(p, k).unwrap(), color);
+    for (w, v, pdf, part, lam) in samples {
+        let s = CvSample {
+            pdf: *pdf,
+            partition: *part,
+            overlapping: lam,
+        };
+        acc.add(*w, *v, &s).unwrap();
+    }
+    acc
+}
+
+#[test]
+fn variance_reduction_equals_its_definition_on_the_samples() {
+    for (p, k, color, ridge, slope, seed) in [
+        (6, 2, ColorMode::Rgb, 0.0, 1.0, 1),
+        (6, 2, ColorMode::Rgb, 1.0, 0.3, 2),
+        (0, 3, ColorMode::Mono, 1e-6, 2.0, 3),
+        (9, 0, ColorMode::Rgb, 0.5, 0.0, 4),
+        (4, 1, ColorMode::Mono, 1.0, 1.0, 5),
+    ] {
+        let samples = recorded_cell(p, k, 300, seed, slope);
+        let acc = accumulate(&samples, p, k, color);
+        let policy = SolvePolicy {
+            ridge,
+            ..SolvePolicy::default()
+        };
+        for co in [solve(&acc, &policy), solve_dense(&acc, &policy)] {
+            assert!(!co.is_fallback());
+            // Brute force: the plain values' weighted sum of squares about their weighted
+            // mean minus the controlled values' about theirs, channel by channel.
+            let c = color.channels();
+            let (mut want, mut scale) = (0.0, 0.0);
+            for ch in 0..c {
+                let y = |v: &[f64; 3]| match color {
+                    ColorMode::Rgb => v[ch],
+                    ColorMode::Mono => (v[0] + v[1] + v[2]) / 3.0,
+                };
+                let sw: f64 = samples.iter().map(|s| s.0).sum();
+                let mean = samples.iter().map(|s| s.0 * y(&s.1)).sum::<f64>() / sw;
+                let controlled: Vec<f64> = samples
+                    .iter()
+                    .map(|(_, v, pdf, part, lam)| {
+                        y(v) - co.cv_term(&CvSample {
+                            pdf: *pdf,
+                            partition: *part,
+                            overlapping: lam,
+                        })[if c == 1 { 0 } else { ch }]
+                    })
+                    .collect();
+                let cmean = samples
+                    .iter()
+                    .zip(&controlled)
+                    .map(|(s, x)| s.0 * x)
+                    .sum::<f64>()
+                    / sw;
+                for (s, x) in samples.iter().zip(&controlled) {
+                    want += s.0 * ((y(&s.1) - mean).powi(2) - (x - cmean).powi(2));
+                    scale += s.0 * (y(&s.1) - mean).powi(2);
+                }
+            }
+            let got = variance_reduction(&acc, &co);
+            assert!(
+                (got - want).abs() < 1e-9 * scale,
+                "p {p} k {k} slope {slope}: {got} vs {want}"
+            );
+            // A correlated cell loses variance (in RGB: the slope cancels in the channel
+            // mean); a least-squares fit (or one shrunk toward zero by a ridge) never adds
+            // any in-sample.
+            if slope >= 1.0 && color == ColorMode::Rgb {
+                assert!(got > 0.2 * scale, "{got} of {scale}");
+            }
+            assert!(got > -1e-9 * scale, "{got}");
+        }
+        // The plain estimator removes nothing.
+        assert_eq!(
+            variance_reduction(&acc, &CellCoefficients::plain(acc.layout(), color)),
+            0.0
+        );
+    }
+}
+
+/// A table of `cells` recorded cells (the even ones correlated, the odd ones noise) and
+/// one cell too small to solve.
+fn gate_table(cells: u64) -> BTreeMap<u64, CellAccumulator> {
+    let mut t: BTreeMap<u64, CellAccumulator> = (0..cells)
+        .map(|k| {
+            let slope = if k % 2 == 0 { 2.0 } else { 0.0 };
+            (
+                k,
+                accumulate(
+                    &recorded_cell(5, 2, 300, 500 + k, slope),
+                    5,
+                    2,
+                    ColorMode::Rgb,
+                ),
+            )
+        })
+        .collect();
+    t.insert(
+        cells,
+        accumulate(&recorded_cell(5, 2, 5, 999, 2.0), 5, 2, ColorMode::Rgb),
+    );
+    t
+}
+
+#[test]
+fn a_table_below_its_minimum_image_gain_falls_back_everywhere() {
+    let cells = gate_table(6);
+    let policy = SolvePolicy {
+        ridge: 1.0,
+        ..SolvePolicy::default()
+    };
+    let fitted = solve_table(&cells, &policy);
+    let reduction: f64 = cells
+        .iter()
+        .map(|(k, a)| variance_reduction(a, &fitted[k]))
+        .sum();
+    assert!(reduction > 0.0);
+    let image = 40.0 * reduction;
+    let gain = predicted_image_gain(&cells, &fitted, Some(image)).unwrap();
+    assert!((gain - 0.025).abs() < 1e-12, "{gain}");
+    let solved_with = |min: f64, image: Option<f64>| {
+        AccumulatorTable::Moments(cells.clone(), image).solve(
+            &SolvePolicy {
+                min_image_gain: min,
+                ..policy
+            },
+            3,
+        )
+    };
+    // Above the minimum (and with no minimum) the fits are the plain solves'.
+    for min in [0.02, f64::NEG_INFINITY] {
+        let kept = solved_with(min, Some(image));
+        assert_eq!(kept.image_gain, Some(gain));
+        // (Compared encoded: a fallback's NaN condition is not equal to itself.)
+        assert!(encode_table(&kept.coefficients) == encode_table(&fitted));
+    }
+    // Below it every fitted cell falls back, with zero coefficients; a cell that fell back
+    // for its own reason keeps that reason.
+    let off = solved_with(0.03, Some(image));
+    assert_eq!(off.image_gain, Some(gain));
+    for (k, co) in &off.coefficients {
+        assert_eq!(co.alpha_sum(), [0.0; 3]);
+        let want = match fitted[k].diagnostics().status {
+            SolveStatus::Solved => SolveStatus::Fallback(FallbackReason::LowImageGain),
+            other => other,
+        };
+        assert_eq!(co.diagnostics().status, want, "cell {k}");
+    }
+    assert_eq!(
+        fitted[&6].diagnostics().status,
+        SolveStatus::Fallback(FallbackReason::TooFewSamples)
+    );
+    // The fallback round-trips through the coefficient encoding.
+    let back = CellCoefficients::decode(&off.coefficients[&0].encode()).unwrap();
+    assert_eq!(
+        back.diagnostics().status,
+        SolveStatus::Fallback(FallbackReason::LowImageGain)
+    );
+    // An unknown or empty image variance makes no decision.
+    for image in [None, Some(0.0)] {
+        let kept = solved_with(0.03, image);
+        assert_eq!(kept.image_gain, None);
+        assert!(encode_table(&kept.coefficients) == encode_table(&fitted));
+    }
+}
+
+#[test]
+fn version_1_accumulators_decode_with_no_value_moments_and_remove_nothing() {
+    let samples = recorded_cell(4, 2, 200, 7, 2.0);
+    let acc = accumulate(&samples, 4, 2, ColorMode::Rgb);
+    let v2 = acc.encode();
+    // Version 1 = the same bytes without the 2·C value moments after Σw², the K overlapping
+    // `Σ w λ/p` after the overlapping `b` and each partition entry's `Σ w λ/p` (its last f64).
+    let (k, c) = (2usize, 3usize);
+    let header = 4 + 2 + 1 + 1 + 4 + 4 + 8 + 8 + 8 + 8;
+    let dense = 8 * (k * (k + 1) / 2 + k * c);
+    let mut v1 = v2[..header].to_vec();
+    let mut at = header + 8 * 2 * c;
+    v1.extend_from_slice(&v2[at..at + dense]);
+    at += dense + 8 * k;
+    v1.extend_from_slice(&v2[at..at + 4]);
+    at += 4;
+    let entry = 12 + 8 * (2 + k + c);
+    while at < v2.len() {
+        v1.extend_from_slice(&v2[at..at + entry - 8]);
+        at += entry;
+    }
+    assert_eq!(at, v2.len());
+    v1[4..6].copy_from_slice(&1u16.to_le_bytes());
+    let old = CellAccumulator::decode(&v1).unwrap();
+    assert_eq!(old.value_moments(0), (0.0, 0.0));
+    assert_eq!(old.g_overlapping(1), 0.0);
+    assert!(old.partitions().all(|p| p.g == 0.0));
+    for (a, b) in old.partitions().zip(acc.partitions()) {
+        assert_eq!(
+            (a.id, a.count, a.diag, a.cross, a.b),
+            (b.id, b.count, b.diag, b.cross, b.b)
+        );
+    }
+    assert_eq!(old.samples(), acc.samples());
+    let co = solve(&old, &SolvePolicy::default());
+    assert_eq!(co.encode(), solve(&acc, &SolvePolicy::default()).encode());
+    assert_eq!(variance_reduction(&old, &co), 0.0);
+    assert!(variance_reduction(&acc, &co) > 0.0);
+    // Re-encoded, it is a version-2 accumulator with zero moments.
+    assert_eq!(CellAccumulator::decode(&old.encode()).unwrap(), old);
 }

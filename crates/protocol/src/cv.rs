@@ -121,7 +121,7 @@ pub fn layout_signature(table: &AccumulatorTable) -> Result<Option<String>, CvEr
         Ok(first.map(show))
     }
     match table {
-        AccumulatorTable::Moments(t) => uniform(
+        AccumulatorTable::Moments(t, _) => uniform(
             t.values(),
             |a| {
                 let l = a.layout();
@@ -254,15 +254,21 @@ pub fn merge_train(
     let decode = |e: estimators::cell::CellError| CvError::Decode(e.to_string());
     let mut moments = Vec::new();
     let mut means = Vec::new();
+    // The image variances summed in the tables' order, as `AccumulatorTable::merge` does
+    // (unknown as soon as one table's is).
+    let mut image = Some(0.0);
     for t in tables {
         match t {
-            AccumulatorTable::Moments(m) => moments.push(m),
+            AccumulatorTable::Moments(m, v) => {
+                moments.push(m);
+                image = image.zip(v).map(|(a, b)| a + b);
+            }
             AccumulatorTable::Mean(m) => means.push(m),
         }
     }
     Ok(match AccumulatorTable::empty(kind).map_err(decode)? {
-        AccumulatorTable::Moments(_) => {
-            AccumulatorTable::Moments(merge_maps(&moments, threads).map_err(decode)?)
+        AccumulatorTable::Moments(..) => {
+            AccumulatorTable::Moments(merge_maps(&moments, threads).map_err(decode)?, image)
         }
         AccumulatorTable::Mean(_) => {
             AccumulatorTable::Mean(merge_maps(&means, threads).map_err(decode)?)
@@ -396,7 +402,7 @@ mod tests {
             overlapping: &[0.5],
         };
         a.add(1.0, [0.5, 0.25, 1.0], &s).unwrap();
-        AccumulatorTable::Moments(BTreeMap::from([(key, a)]))
+        AccumulatorTable::Moments(BTreeMap::from([(key, a)]), Some(1.0))
     }
 
     fn result(cells: Vec<CellBlock>) -> TileResult {
@@ -508,7 +514,8 @@ mod tests {
             }
             map.insert(k, a);
         }
-        AccumulatorTable::Moments(map)
+        // Tile-dependent, so that a sum in another order would have other bits too.
+        AccumulatorTable::Moments(map, Some(1.0 / (t as f64 + 3.0)))
     }
 
     #[test]

@@ -305,6 +305,10 @@ pub struct BarrierStats {
     /// Training samples rejected as non-finite.
     #[serde(default)]
     pub rejected_samples: u64,
+    /// Predicted image gain of the fits (`estimators::table::predicted_image_gain`; below
+    /// the job's `min_image_gain` every cell falls back), when known.
+    #[serde(default)]
+    pub predicted_image_gain: Option<f64>,
 }
 
 #[cfg(test)]

@@ -24,6 +24,7 @@ fn estimators() -> Vec<Estimator> {
             grid_resolution: Some([8, 8, 8]),
             // Also the camera hit (the default `min_depth` 1 leaves it to the base).
             min_depth: 0,
+            min_image_gain: None,
             ..CmsOptions::default()
         }),
         Estimator::PerLightCv(PerLightCvOptions {
@@ -109,6 +110,7 @@ fn many_lights_clustered_with_unsampled_partitions() {
         min_samples: 4,
         grid_resolution: Some([16, 16, 16]),
         max_light_components: 4,
+        min_image_gain: None,
         ..CmsOptions::default()
     });
     let opts = RenderOptions::default();
@@ -138,6 +140,7 @@ fn occluded_lights_zero_contribution_samples() {
         training_spp: 8,
         min_samples: 4,
         grid_resolution: Some([24, 24, 24]),
+        min_image_gain: None,
         ..CmsOptions::default()
     });
     let (f, report) = render(&s, e, 32, 5, None, RenderOptions::default());
@@ -249,6 +252,59 @@ fn bad_grid_resolution_is_an_error() {
     assert!(r.is_err());
 }
 
+/// When the fits are predicted not to pay (the table's predicted image gain under
+/// `min_image_gain`) every fitted cell falls back (`LowImageGain`) and the render phase is
+/// traced as `path`: the image is `path`'s up to rounding (the training vertices' values are
+/// the same estimator summed in another order), while with the fits applied it is not; a
+/// minimum under the prediction changes no bit.
+#[test]
+fn fits_predicted_not_to_pay_leave_the_image_to_path() {
+    let opts = RenderOptions::default();
+    let s = load("scenes/cornell-box/scene.json", 24, 16);
+    let (p, _) = render(&s, Estimator::Path, 24, 5, None, opts);
+    let run = |min_image_gain| {
+        let e = Estimator::Cms(CmsOptions {
+            training_spp: 8,
+            min_samples: 4,
+            min_image_gain,
+            ..CmsOptions::default()
+        });
+        render(&s, e, 24, 5, None, opts)
+    };
+    let worst = |f: &render::film::Film| {
+        let mut worst = 0.0f64;
+        for (a, b) in f.pixels.iter().zip(&p.pixels) {
+            for c in 0..3 {
+                let d = (a.sum[c] - b.sum[c]).abs() / (1e-3 + b.sum[c].abs());
+                worst = worst.max(d);
+            }
+        }
+        worst
+    };
+    let (on, r_on) = run(None);
+    let gain = r_on.predicted_image_gain.expect("a predicted gain");
+    assert!(r_on.cells_solved > 0, "{r_on:?}");
+    let (off, r_off) = run(Some(gain + 0.5));
+    assert_eq!(r_off.predicted_image_gain, Some(gain));
+    assert_eq!(r_off.cells_solved, 0, "{r_off:?}");
+    assert_eq!(
+        r_off.cells_fallback.get("LowImageGain").copied(),
+        Some(r_on.cells_solved),
+        "{r_off:?}"
+    );
+    let (d_on, d_off) = (worst(&on), worst(&off));
+    assert!(d_off <= 1e-5, "fits off: {d_off} from path");
+    assert!(d_on > 1e-3, "fits on: {d_on} from path");
+    let (kept, _) = run(Some(gain - 0.5));
+    let bits = |f: &render::film::Film| {
+        f.pixels
+            .iter()
+            .flat_map(|q| q.sum.map(f64::to_bits))
+            .collect::<Vec<_>>()
+    };
+    assert!(bits(&kept) == bits(&on));
+}
+
 /// With the default `min_depth` 1 a depth-2 job has no vertex to control: every phase is
 /// traced by `path` itself, so the image is `path`'s up to the order in which the phases'
 /// sums are added; with `min_depth` 0 the same job applies a CV at the camera hit and differs.
@@ -266,6 +322,7 @@ fn cms_at_depth_two_is_path() {
                 training_spp: 8,
                 min_samples: 4,
                 min_depth,
+                min_image_gain: None,
                 ..CmsOptions::default()
             });
             let (cv, report) = render(&s, e, 24, 5, Some(2), opts);
@@ -296,7 +353,6 @@ fn cms_at_depth_two_is_path() {
 /// sum, since the coefficients are rounded to `bfloat16`).
 #[test]
 fn training_table_bits_do_not_depend_on_threads() {
-    use estimators::table::{AccumulatorTable, encode_table};
     use render::integrator::cv::CvJob;
     use render::{RenderScene, RenderSettings, TileRect};
 
@@ -334,10 +390,8 @@ fn training_table_bits_do_not_depend_on_threads() {
                 .install(|| job.train_tile(tile, train.clone(), surrogate.as_deref()))
                 .unwrap()
                 .cells;
-            match cells {
-                AccumulatorTable::Moments(m) => encode_table(&m),
-                AccumulatorTable::Mean(m) => encode_table(&m),
-            }
+            // The whole table, image variance included.
+            cells.encode()
         };
         let one = bits(1);
         assert!(one.len() > 1000, "{e:?}: a table with cells");

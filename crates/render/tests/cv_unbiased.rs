@@ -78,6 +78,8 @@ fn cms_coarse() -> Estimator {
         training_spp: 8,
         grid_resolution: Some([4, 4, 4]),
         min_samples: 8,
+        // The fits applied whatever their predicted gain: this tests their mechanics.
+        min_image_gain: None,
         ..CmsOptions::default()
     })
 }
@@ -101,6 +103,8 @@ fn cms_balance_base_without_shrinkage_is_unbiased_on_colour_lamp() {
         min_samples: 8,
         ridge: 1e-6,
         base: render::integrator::cv::CvBase::Balance,
+        // The fits applied whatever their predicted gain: this tests their mechanics.
+        min_image_gain: None,
         ..CmsOptions::default()
     });
     check("scenes/colour-lamp/scene.json", e, 16, 16, 1024);
@@ -112,6 +116,8 @@ fn cms_absolute_mono_is_unbiased_on_cornell_box() {
         relative: false,
         color: render::integrator::cv::CvColor::Mono,
         training_spp: 8,
+        // The fits applied whatever their predicted gain: this tests their mechanics.
+        min_image_gain: None,
         ..CmsOptions::default()
     });
     check("scenes/cornell-box/scene.json", e, 16, 16, 1024);
@@ -168,6 +174,8 @@ fn cms_with_zero_alpha_equals_path_with_the_same_heuristic() {
                     training_spp,
                     min_samples,
                     base,
+                    // The fits applied whatever their predicted gain: this tests their mechanics.
+                    min_image_gain: None,
                     ..CmsOptions::default()
                 });
                 let (cv, report) = render(&s, e, spp, 9, None, opts);

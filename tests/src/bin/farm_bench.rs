@@ -367,7 +367,7 @@ fn tile_table(tile: usize, cells: usize, samples: usize) -> Vec<u8> {
         }
         table.insert(first + c, acc);
     }
-    AccumulatorTable::Moments(table).encode()
+    AccumulatorTable::Moments(table, Some(1.0)).encode()
 }
 
 /// The merge + solve benchmark (see the module docs); prints a markdown table.
@@ -399,7 +399,7 @@ fn merge_solve(sims: usize, tiles: usize, cells: usize, samples: usize) {
     let mut merged = None;
     for _ in 0..3 {
         let t = Instant::now();
-        let mut acc = AccumulatorTable::Moments(Default::default());
+        let mut acc = AccumulatorTable::Moments(Default::default(), Some(0.0));
         for (_, b) in &uploads {
             let table = AccumulatorTable::decode(b).expect("decode");
             acc.merge(&table).expect("merge");

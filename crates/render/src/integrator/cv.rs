@@ -161,6 +161,10 @@ pub struct EstimatorReport {
     pub cells_fallback: BTreeMap<String, u64>,
     /// Training samples rejected (non-finite).
     pub rejected_training_samples: u64,
+    /// Predicted fraction of the image's per-sample variance the fits remove
+    /// ([`estimators::table::predicted_image_gain`]); `null` when not computed. Below the
+    /// job's `min_image_gain` every cell falls back (`LowImageGain`).
+    pub predicted_image_gain: Option<f64>,
     /// Emitters of the scene.
     pub lights: u32,
     /// Partitioned CV components (lights or light clusters, env included).
@@ -555,6 +559,10 @@ impl CoefficientTable {
 }
 
 /// A cell's training accumulator.
+// `Moments` is the common variant (every estimator but `per_light_cv`) and is added to on
+// every training sample: boxing it would put a pointer chase on that path to save memory only
+// in `per_light_cv` jobs.
+#[allow(clippy::large_enum_variant)]
 #[derive(Clone, Debug)]
 enum CellAcc {
     Moments(CellAccumulator),
@@ -1178,7 +1186,8 @@ impl<'a> CvJob<'a> {
         let fold = InOrderFold::default();
         let t = Banded::run(&self.ctx, tile, samples, input, Some(&fold));
         // Every band's samples, added in band order (see [`BAND_ROWS`]).
-        let cells = cells_table(self.ctx.kind, fold.finish());
+        let image = image_variance(&t.film, self.ctx.rs.width, surrogate);
+        let cells = cells_table(self.ctx.kind, fold.finish(), image);
         Ok(TrainTile {
             out: TileFilm {
                 film: t.film,
@@ -1447,7 +1456,7 @@ fn merge_in_order(
 ) -> Result<AccumulatorTable, RenderError> {
     let mut tables = tables.into_iter();
     let Some(mut merged) = tables.next() else {
-        return Ok(cells_table(kind, TileCells::default()));
+        return Ok(cells_table(kind, TileCells::default(), 0.0));
     };
     for t in tables {
         merged.merge(&t).map_err(|_| RenderError::InvalidSetting {
@@ -1458,9 +1467,35 @@ fn merge_in_order(
     Ok(merged)
 }
 
+/// The image variance of a training tile's film, in the units of its cells' sums (see
+/// [`AccumulatorTable::Moments`]): `Σ_pixels Σ_c w_p (Σ L² − (Σ L)²/n)`, with
+/// `w_p = training_weight(1, surrogate_p)` — `1/(s_p + ε)²` with a surrogate, else 1 — as a
+/// training sample of the pixel is weighted besides its throughput [Hua eq. 25]. Pixels in
+/// row-major order, so the bits depend only on the film.
+fn image_variance(film: &Film, image_width: u32, surrogate: Option<&[f64]>) -> f64 {
+    let mut total = 0.0;
+    for (i, p) in film.pixels.iter().enumerate() {
+        if p.count < 2 {
+            continue;
+        }
+        let (x, y) = (
+            film.x0 + i as u32 % film.width,
+            film.y0 + i as u32 / film.width,
+        );
+        let at = y as usize * image_width as usize + x as usize;
+        let w = training_weight(1.0, surrogate.and_then(|s| s.get(at).copied()));
+        let n = p.count as f64;
+        let ss: f64 = (0..3)
+            .map(|c| (p.sum_sq[c] - p.sum[c] * p.sum[c] / n).max(0.0))
+            .sum();
+        total += w * ss;
+    }
+    if total.is_finite() { total } else { 0.0 }
+}
+
 /// Training cells (a tile's, or none) as a table keyed by cell (of the job's kind, also when
-/// empty).
-fn cells_table(kind: Kind, cells: TileCells) -> AccumulatorTable {
+/// empty), with the tile's image variance for moments.
+fn cells_table(kind: Kind, cells: TileCells, image: f64) -> AccumulatorTable {
     match kind {
         Kind::PerLight => {
             let mut m = BTreeMap::new();
@@ -1478,7 +1513,7 @@ fn cells_table(kind: Kind, cells: TileCells) -> AccumulatorTable {
                     m.insert(u64::from(k), a);
                 }
             }
-            AccumulatorTable::Moments(m)
+            AccumulatorTable::Moments(m, Some(image))
         }
     }
 }
@@ -1748,6 +1783,7 @@ pub fn render_estimator_image(
         light_components: layout.partitions,
         overlapping_components: layout.overlapping,
         rejected_training_samples: solved.rejected,
+        predicted_image_gain: solved.image_gain,
         ..EstimatorReport::default()
     };
     for co in solved.coefficients.values() {
@@ -1849,6 +1885,32 @@ fn estimator_name(e: &Estimator) -> &'static str {
 mod tests {
     use super::*;
 
+    #[test]
+    fn image_variance_weighs_each_pixel_by_its_own_surrogate() {
+        // A 2×1 tile at (2, 1) of a 4×3 image: pixel (2, 1) gets samples 1, 3 (squared
+        // deviations 1 + 1 per channel), pixel (3, 1) gets 0, 4, 8 in red only (16 + 0 + 16).
+        let mut film = Film::new_rect(2, 1, 2, 1);
+        for v in [1.0, 3.0] {
+            film.pixel_mut(2, 1)
+                .add(Vec3::splat(v), Vec3::ZERO, Vec3::Z);
+        }
+        for v in [0.0, 4.0, 8.0] {
+            film.pixel_mut(3, 1)
+                .add(Vec3::new(v, 0.0, 0.0), Vec3::ZERO, Vec3::Z);
+        }
+        assert_eq!(image_variance(&film, 4, None), 3.0 * 2.0 + 32.0);
+        let mut surrogate = vec![f64::NAN; 12];
+        surrogate[4 + 2] = 0.99; // w = 1
+        surrogate[4 + 3] = 1.99; // w = 1/4
+        let want = 6.0 + 32.0 / 4.0;
+        let got = image_variance(&film, 4, Some(&surrogate));
+        assert!((got - want).abs() < 1e-12, "{got} vs {want}");
+        // A pixel with one sample has no spread to count.
+        let mut one = Film::new_rect(0, 0, 1, 1);
+        one.pixel_mut(0, 0).add(Vec3::ONE, Vec3::ZERO, Vec3::Z);
+        assert_eq!(image_variance(&one, 4, None), 0.0);
+    }
+
     /// A band whose log fills up adds it to its own cells and goes on logging; the tile then
     /// takes the band's cells and the rest of its log. Nothing is lost or counted twice (every
     /// cell's sample count is exact), the sums agree with the unspilled ones to rounding, and
@@ -1887,7 +1949,7 @@ mod tests {
                 .unwrap()
                 .cells
             {
-                AccumulatorTable::Moments(m) => m,
+                AccumulatorTable::Moments(m, _) => m,
                 AccumulatorTable::Mean(_) => unreachable!("cms trains moments"),
             }
         };
