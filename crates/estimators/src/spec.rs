@@ -156,7 +156,7 @@ impl OcvOptions {
 }
 
 /// Default [`CmsOptions::min_image_gain`].
-pub const DEFAULT_MIN_IMAGE_GAIN: f64 = 0.002;
+pub const DEFAULT_MIN_IMAGE_GAIN: f64 = 3e-4;
 
 /// Options of the `cms` estimator [Hua 2023].
 ///
@@ -171,7 +171,7 @@ pub const DEFAULT_MIN_IMAGE_GAIN: f64 = 0.002;
 /// | `ridge` | f64 | `1` | relative Tikhonov regularisation of each cell system: `A + ridge·diag(A)` shrinks `α` toward the base estimator (`path` with the default `base`); 1 halves an uncorrelated coefficient. Chosen by equal-spp measurements (`docs/bench/README.md`): the unshrunk fit loses to `path` on direct lighting |
 /// | `min_samples` | u64 | 16 | cells with fewer training samples fall back to the plain estimator |
 /// | `base` | `"mis"` \| `"balance"` | `"mis"` | base estimator (`α ≡ 0`): the job's MIS heuristic (= `path`) or balance [`CvBase`] |
-/// | `min_image_gain` | f64 \| null | `0.002` | the fits are applied only when they are predicted to remove at least this fraction of the image's per-sample (relative) variance, measured on the training samples ([`crate::table::predicted_image_gain`]); below it every cell falls back and the render phase is traced as `path`. null always applies them. Chosen by equal-spp and equal-time measurements (`docs/bench/README.md`) |
+/// | `min_image_gain` | f64 \| null | `3e-4` | the fits are applied only when they are predicted to remove at least this fraction of the image's per-sample (relative) variance, measured on the training samples ([`crate::table::predicted_image_gain`]); below it every cell falls back and the render phase is traced as `path`. null always applies them. Chosen by equal-spp and equal-time measurements (`docs/bench/README.md`) |
 /// | `min_depth` | u32 | `1` | the CV is trained and applied only at path vertices of at least this depth (0 = the camera hit); shallower vertices use the base estimator. With 1, depth-2 (direct-lighting) jobs are exactly `path`. Chosen by equal-spp measurements (`docs/bench/README.md`): the CV at the camera hit costs more than it gains against the stratified (Sobol) pixel samples of the base estimator |
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]

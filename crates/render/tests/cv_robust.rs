@@ -305,6 +305,44 @@ fn fits_predicted_not_to_pay_leave_the_image_to_path() {
     assert!(bits(&kept) == bits(&on));
 }
 
+/// The default `min_image_gain` against the scenes it was measured on (`docs/bench/README.md`,
+/// "Regressing to the baseline"): veach-mis, whose controlled vertices hold almost none of the
+/// image's variance (predicted ~10⁻⁵ here), is switched off; colour-lamp (~10⁻²) and the
+/// shared `manylights-4` at its native size (~9·10⁻⁴, a measured 1.23× at equal spp) keep
+/// their fits.
+#[test]
+fn the_default_switch_drops_useless_fits_and_keeps_useful_ones() {
+    let opts = RenderOptions::default();
+    for (rel, w, h, applied) in [
+        ("scenes/veach-mis/scene.json", 96, 64, false),
+        ("scenes/colour-lamp/scene.json", 64, 64, true),
+        (
+            "../shared/scenes-mitsuba/manylights-4/scene.xml",
+            128,
+            128,
+            true,
+        ),
+    ] {
+        let s = load(rel, w, h);
+        let (f, r) = render(
+            &s,
+            Estimator::Cms(CmsOptions::default()),
+            20,
+            0,
+            Some(5),
+            opts,
+        );
+        assert!(all_finite(&f));
+        let gain = r.predicted_image_gain.expect("a predicted gain");
+        let off = r.cells_fallback.get("LowImageGain").copied().unwrap_or(0);
+        if applied {
+            assert!(r.cells_solved > 0 && off == 0, "{rel}: gain {gain}, {r:?}");
+        } else {
+            assert!(r.cells_solved == 0 && off > 0, "{rel}: gain {gain}, {r:?}");
+        }
+    }
+}
+
 /// With the default `min_depth` 1 a depth-2 job has no vertex to control: every phase is
 /// traced by `path` itself, so the image is `path`'s up to the order in which the phases'
 /// sums are added; with `min_depth` 0 the same job applies a CV at the camera hit and differs.
