@@ -43,6 +43,15 @@ fn local_cv_exr(
     estimator: &serde_json::Value,
     job: &ResolvedJob,
 ) -> Vec<u8> {
+    local_cv(scene, estimator, job).0
+}
+
+/// [`local_cv_exr`] and the in-process run's predicted image gain.
+fn local_cv(
+    scene: &serde_json::Value,
+    estimator: &serde_json::Value,
+    job: &ResolvedJob,
+) -> (Vec<u8>, Option<f64>) {
     let (loaded, settings) = local_scene(scene, &[], job);
     let est: render::integrator::Estimator =
         serde_json::from_value(estimator.clone()).expect("render estimator");
@@ -61,7 +70,17 @@ fn local_cv_exr(
     if est.has_phases() {
         assert!(report.cells > 0, "{report:?}");
     }
-    film_exr(&film, job)
+    (film_exr(&film, job), report.predicted_image_gain)
+}
+
+/// The train barrier's stats of a CV job.
+fn train_barrier(run: &Run) -> &serde_json::Value {
+    &run.stats["phases"]
+        .as_array()
+        .expect("phases")
+        .iter()
+        .find(|p| p["name"] == "train")
+        .expect("train phase")["barrier"]
 }
 
 struct Run {
@@ -145,25 +164,28 @@ fn cms_one_vs_three(backend: Backend) {
         one.coefficients == three.coefficients,
         "coefficient tables differ"
     );
-    let local = local_cv_exr(&scene, &est, &one.status.job);
+    let (local, local_gain) = local_cv(&scene, &est, &one.status.job);
     assert!(
         one.exr == local,
         "farm EXR differs from the in-process render"
     );
     // cms with `relative` (the default): surrogate 0..1, train 1..17, render 17..24.
     check_stats(&one, &[("surrogate", 1), ("train", 16), ("render", 7)]);
-    let train = one.stats["phases"]
-        .as_array()
-        .expect("phases")
-        .iter()
-        .find(|p| p["name"] == "train")
-        .expect("train phase");
-    let gain = train["barrier"]["predicted_image_gain"].as_f64();
-    assert!(gain.is_some_and(|g| g > 0.0), "{train}");
-    assert!(
-        train["barrier"]["cells_solved"].as_u64() > Some(0),
-        "{train}"
+    // The image variance travels with the training tables: the farm predicts the same gain
+    // as the in-process driver, to the bit (compared as the stats carry it, through JSON).
+    let barrier = train_barrier(&one);
+    let gain = barrier["predicted_image_gain"].as_f64();
+    assert!(gain.is_some_and(|g| g > 0.0), "{barrier}");
+    let local_gain =
+        serde_json::from_str::<Option<f64>>(&serde_json::to_string(&local_gain).expect("json"))
+            .expect("json");
+    assert_eq!(
+        gain.map(f64::to_bits),
+        local_gain.map(f64::to_bits),
+        "{barrier}"
     );
+    assert_eq!(train_barrier(&three)["predicted_image_gain"].as_f64(), gain);
+    assert!(barrier["cells_solved"].as_u64() > Some(0), "{barrier}");
     let img = imageio::read_exr_bytes(&one.exr).expect("exr decodes");
     let beauty = img.main_layer().expect("beauty");
     assert!(beauty.data.iter().any(|p| p[0] > 0.0));
@@ -204,6 +226,29 @@ fn ocv_job_renders_in_one_phase_with_local_bits() {
     let r = client.request("GET", &format!("/v1/jobs/{id}/coefficients"), None);
     assert_eq!(r.status, 404);
     assert!(client.download(id, "image.exr") == local_cv_exr(&scene, &est, &status.job));
+}
+
+/// A job whose fits are predicted not to pay (here: a minimum above any prediction) is
+/// switched off at the farm's train barrier as in-process: every cell `LowImageGain`, the
+/// same bits as the local render.
+#[test]
+fn a_switched_off_cms_job_has_the_local_bits() {
+    let scene = scene_json("cornell-box/scene.json");
+    let est = serde_json::json!({ "kind": "cms", "min_image_gain": 0.9 });
+    let run = run_job(Backend::Sqlite, 2, &spec(&scene, est.clone(), 3));
+    assert!(run.exr == local_cv_exr(&scene, &est, &run.status.job));
+    let barrier = train_barrier(&run);
+    assert_eq!(barrier["cells_solved"].as_u64(), Some(0), "{barrier}");
+    assert!(
+        barrier["cells_fallback"]["LowImageGain"].as_u64() > Some(0),
+        "{barrier}"
+    );
+    assert!(
+        barrier["predicted_image_gain"]
+            .as_f64()
+            .is_some_and(|g| g < 0.9),
+        "{barrier}"
+    );
 }
 
 #[test]
