@@ -130,11 +130,7 @@ fn check_stats(run: &Run, phases: &[(&str, u64)]) {
         run.stats["spp"].as_f64(),
         Some(f64::from(run.status.job.spp))
     );
-    let train = ph
-        .iter()
-        .find(|p| p["name"] == "train")
-        .expect("train phase");
-    let barrier = &train["barrier"];
+    let barrier = train_barrier(run);
     let cells = barrier["cells"].as_u64().expect("cells");
     let solved = barrier["cells_solved"].as_u64().expect("solved");
     let fallback: u64 = barrier["cells_fallback"]

@@ -222,7 +222,7 @@ pub struct CellAccumulator {
     weight_sum: f64,
     weight_sq_sum: f64,
     /// `[Σ w y_c, Σ w y_c²]` per channel `c` of the colour mode (the first `2·C` entries),
-    /// for the predicted gain of a fit (see [`CellAccumulator::value_moments`]).
+    /// for the variance a fit removes (see [`CellAccumulator::value_moments`]).
     value: [f64; 2 * CHANNELS],
     /// Packed upper triangle (row-major, `j >= i`) of the `K × K` overlapping block.
     dense: Vec<f64>,

@@ -167,6 +167,18 @@ impl CellCoefficients {
         }
     }
 
+    /// The plain estimator as the fallback for `reason` (`α ≡ 0`), keeping the rest of
+    /// `diagnostics`.
+    pub fn fallen_back(
+        layout: ComponentLayout,
+        color: ColorMode,
+        mut diagnostics: SolveDiagnostics,
+        reason: FallbackReason,
+    ) -> Self {
+        diagnostics.status = SolveStatus::Fallback(reason);
+        Self::zero(layout, color, diagnostics)
+    }
+
     /// The plain estimator for `layout` (`α ≡ 0`, status `Solved` with no active component).
     pub fn plain(layout: ComponentLayout, color: ColorMode) -> Self {
         Self::zero(
@@ -359,10 +371,10 @@ impl CellCoefficients {
 /// `Σw(y − αᵀg)² = Σwy² − 2αᵀb + αᵀAα` (`g = λ/p`, [Hua eq. 21]) and
 /// `Σw(y − αᵀg) = Σwy − αᵀΣwg`. Centred because a constant added to every sample's value
 /// does not change the estimator's variance, and the ridge shrinks `α` toward zero, not
-/// toward the shift [Hua eq. 14] that is equivalent to it. In the units of the training weights [Hua eq. 25, 29]: summed
-/// over the cells of a table and divided by the image's own sum of squares
-/// ([`crate::table::ImageVariance`]) it is the fraction of the image's per-sample variance
-/// the fits remove. `0` for the plain estimator (every `α = 0`, whose estimate is the
+/// toward the shift [Hua eq. 14] that is equivalent to it. In the units of the training
+/// weights [Hua eq. 25, 29]: summed over the cells of a table and divided by the image's
+/// own sum of squares (the image variance of [`crate::table::AccumulatorTable::Moments`])
+/// it is the fraction of the image's per-sample variance the fits remove. `0` for the plain estimator (every `α = 0`, whose estimate is the
 /// weighted mean's: `R₀` is its sum, not the uncentred one).
 pub fn variance_reduction(acc: &CellAccumulator, co: &CellCoefficients) -> f64 {
     let c = acc.color().channels();
@@ -440,11 +452,10 @@ fn precheck(
 
 fn fallback(
     acc: &CellAccumulator,
-    mut diag: SolveDiagnostics,
+    diag: SolveDiagnostics,
     reason: FallbackReason,
 ) -> CellCoefficients {
-    diag.status = SolveStatus::Fallback(reason);
-    CellCoefficients::zero(acc.layout(), acc.color(), diag)
+    CellCoefficients::fallen_back(acc.layout(), acc.color(), diag, reason)
 }
 
 fn active_overlapping(acc: &CellAccumulator) -> Vec<usize> {

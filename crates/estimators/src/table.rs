@@ -23,9 +23,7 @@ use std::collections::BTreeMap;
 
 use crate::cell::{CellAccumulator, CellError, Reader};
 use crate::perlight::MeanContributionAccumulator;
-use crate::solve::{
-    CellCoefficients, FallbackReason, SolvePolicy, SolveStatus, solve, variance_reduction,
-};
+use crate::solve::{CellCoefficients, FallbackReason, SolvePolicy, solve, variance_reduction};
 
 /// Magic bytes of an encoded table.
 pub const TABLE_MAGIC: [u8; 4] = *b"CVCT";
@@ -245,6 +243,12 @@ pub struct SolvedTable {
     pub image_gain: Option<f64>,
 }
 
+/// The image variance of two merged accumulator tables ([`AccumulatorTable::Moments`]):
+/// their sum, unknown as soon as one is.
+pub fn add_image_variances(a: Option<f64>, b: Option<f64>) -> Option<f64> {
+    a.zip(b).map(|(x, y)| x + y)
+}
+
 /// Predicted fraction of the image's per-sample variance that the fits remove:
 /// `Σ_cells variance_reduction / image`, summed in key order ([`variance_reduction`];
 /// in-sample, over the training samples). `None` without a positive image variance.
@@ -339,7 +343,7 @@ impl AccumulatorTable {
         match (self, other) {
             (Self::Moments(a, ia), Self::Moments(b, ib)) => {
                 merge_tables(a, b)?;
-                *ia = ia.zip(*ib).map(|(x, y)| x + y);
+                *ia = add_image_variances(*ia, *ib);
                 Ok(())
             }
             (Self::Mean(a), Self::Mean(b)) => merge_tables(a, b),
@@ -398,9 +402,12 @@ impl AccumulatorTable {
                 {
                     for co in out.coefficients.values_mut() {
                         if !co.is_fallback() {
-                            let mut d = *co.diagnostics();
-                            d.status = SolveStatus::Fallback(FallbackReason::LowImageGain);
-                            *co = CellCoefficients::zero(co.layout(), co.color(), d);
+                            *co = CellCoefficients::fallen_back(
+                                co.layout(),
+                                co.color(),
+                                *co.diagnostics(),
+                                FallbackReason::LowImageGain,
+                            );
                         }
                     }
                 }

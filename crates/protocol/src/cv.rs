@@ -254,14 +254,13 @@ pub fn merge_train(
     let decode = |e: estimators::cell::CellError| CvError::Decode(e.to_string());
     let mut moments = Vec::new();
     let mut means = Vec::new();
-    // The image variances summed in the tables' order, as `AccumulatorTable::merge` does
-    // (unknown as soon as one table's is).
+    // The image variances summed in the tables' order, as `AccumulatorTable::merge` does.
     let mut image = Some(0.0);
     for t in tables {
         match t {
             AccumulatorTable::Moments(m, v) => {
                 moments.push(m);
-                image = image.zip(v).map(|(a, b)| a + b);
+                image = estimators::table::add_image_variances(image, v);
             }
             AccumulatorTable::Mean(m) => means.push(m),
         }

@@ -64,19 +64,27 @@ impl Pixel {
         self.sum.map(|s| s / n)
     }
 
+    /// Sum of the samples' squared deviations from their mean per channel,
+    /// `Σ x² − n·mean²` (rounding can take it slightly below 0; 0 with fewer than 2 samples).
+    pub fn squared_deviations(&self) -> [f64; 3] {
+        if self.count < 2 {
+            return [0.0; 3];
+        }
+        let n = self.count as f64;
+        std::array::from_fn(|c| {
+            let mean = self.sum[c] / n;
+            self.sum_sq[c] - n * mean * mean
+        })
+    }
+
     /// Variance of the mean per channel (0 with fewer than 2 samples).
     pub fn variance_of_mean(&self) -> [f64; 3] {
         if self.count < 2 {
             return [0.0; 3];
         }
         let n = self.count as f64;
-        let mut out = [0.0; 3];
-        for (c, o) in out.iter_mut().enumerate() {
-            let mean = self.sum[c] / n;
-            let s2 = ((self.sum_sq[c] - n * mean * mean) / (n - 1.0)).max(0.0);
-            *o = s2 / n;
-        }
-        out
+        self.squared_deviations()
+            .map(|d| (d / (n - 1.0)).max(0.0) / n)
     }
 }
 

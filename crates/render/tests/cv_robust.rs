@@ -252,6 +252,20 @@ fn bad_grid_resolution_is_an_error() {
     assert!(r.is_err());
 }
 
+/// Largest per-pixel, per-channel difference of the sample sums of `f` and `p`, relative to
+/// `p`'s (plus 10⁻³); both films must hold the same sample count in every pixel.
+fn worst_relative_difference(f: &render::film::Film, p: &render::film::Film) -> f64 {
+    let mut worst = 0.0f64;
+    for (a, b) in f.pixels.iter().zip(&p.pixels) {
+        assert_eq!(a.count, b.count);
+        for c in 0..3 {
+            let d = (a.sum[c] - b.sum[c]).abs() / (1e-3 + b.sum[c].abs());
+            worst = worst.max(d);
+        }
+    }
+    worst
+}
+
 /// When the fits are predicted not to pay (the table's predicted image gain under
 /// `min_image_gain`) every fitted cell falls back (`LowImageGain`) and the render phase is
 /// traced as `path`: the image is `path`'s up to rounding (the training vertices' values are
@@ -271,16 +285,7 @@ fn fits_predicted_not_to_pay_leave_the_image_to_path() {
         });
         render(&s, e, 24, 5, None, opts)
     };
-    let worst = |f: &render::film::Film| {
-        let mut worst = 0.0f64;
-        for (a, b) in f.pixels.iter().zip(&p.pixels) {
-            for c in 0..3 {
-                let d = (a.sum[c] - b.sum[c]).abs() / (1e-3 + b.sum[c].abs());
-                worst = worst.max(d);
-            }
-        }
-        worst
-    };
+    let worst = |f: &render::film::Film| worst_relative_difference(f, &p);
     let (on, r_on) = run(None);
     let gain = r_on.predicted_image_gain.expect("a predicted gain");
     assert!(r_on.cells_solved > 0, "{r_on:?}");
@@ -364,15 +369,7 @@ fn cms_at_depth_two_is_path() {
                 ..CmsOptions::default()
             });
             let (cv, report) = render(&s, e, 24, 5, Some(2), opts);
-            let mut worst = 0.0f64;
-            for (a, b) in cv.pixels.iter().zip(&p.pixels) {
-                assert_eq!(a.count, b.count);
-                for c in 0..3 {
-                    let d = (a.sum[c] - b.sum[c]).abs() / (1e-3 + b.sum[c].abs());
-                    worst = worst.max(d);
-                }
-            }
-            (worst, report.cells_solved)
+            (worst_relative_difference(&cv, &p), report.cells_solved)
         };
         let (d1, solved1) = diff(1);
         assert_eq!(solved1, 0, "{rel}");

@@ -1468,27 +1468,24 @@ fn merge_in_order(
 }
 
 /// The image variance of a training tile's film, in the units of its cells' sums (see
-/// [`AccumulatorTable::Moments`]): `Σ_pixels Σ_c w_p (Σ L² − (Σ L)²/n)`, with
+/// [`AccumulatorTable::Moments`]): `Σ_pixels Σ_c w_p Σ (L − L̄)²` (each pixel's
+/// [`Pixel::squared_deviations`](crate::film::Pixel::squared_deviations)), with
 /// `w_p = training_weight(1, surrogate_p)` — `1/(s_p + ε)²` with a surrogate, else 1 — as a
 /// training sample of the pixel is weighted besides its throughput [Hua eq. 25]. Pixels in
 /// row-major order, so the bits depend only on the film.
 fn image_variance(film: &Film, image_width: u32, surrogate: Option<&[f64]>) -> f64 {
     let mut total = 0.0;
-    for (i, p) in film.pixels.iter().enumerate() {
-        if p.count < 2 {
-            continue;
+    for (row, y) in film
+        .pixels
+        .chunks(film.width.max(1) as usize)
+        .zip(film.y0..)
+    {
+        for (p, x) in row.iter().zip(film.x0..) {
+            let at = y as usize * image_width as usize + x as usize;
+            let w = training_weight(1.0, surrogate.and_then(|s| s.get(at).copied()));
+            let ss: f64 = p.squared_deviations().iter().map(|d| d.max(0.0)).sum();
+            total += w * ss;
         }
-        let (x, y) = (
-            film.x0 + i as u32 % film.width,
-            film.y0 + i as u32 / film.width,
-        );
-        let at = y as usize * image_width as usize + x as usize;
-        let w = training_weight(1.0, surrogate.and_then(|s| s.get(at).copied()));
-        let n = p.count as f64;
-        let ss: f64 = (0..3)
-            .map(|c| (p.sum_sq[c] - p.sum[c] * p.sum[c] / n).max(0.0))
-            .sum();
-        total += w * ss;
     }
     if total.is_finite() { total } else { 0.0 }
 }
