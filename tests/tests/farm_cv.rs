@@ -46,12 +46,12 @@ fn local_cv_exr(
     local_cv(scene, estimator, job).0
 }
 
-/// [`local_cv_exr`] and the in-process run's predicted image gain.
+/// [`local_cv_exr`] and the in-process run's predicted image and fit gains.
 fn local_cv(
     scene: &serde_json::Value,
     estimator: &serde_json::Value,
     job: &ResolvedJob,
-) -> (Vec<u8>, Option<f64>) {
+) -> (Vec<u8>, [Option<f64>; 2]) {
     let (loaded, settings) = local_scene(scene, &[], job);
     let est: render::integrator::Estimator =
         serde_json::from_value(estimator.clone()).expect("render estimator");
@@ -70,7 +70,10 @@ fn local_cv(
     if est.has_phases() {
         assert!(report.cells > 0, "{report:?}");
     }
-    (film_exr(&film, job), report.predicted_image_gain)
+    (
+        film_exr(&film, job),
+        [report.predicted_image_gain, report.predicted_fit_gain],
+    )
 }
 
 /// The train barrier's stats of a CV job.
@@ -151,7 +154,7 @@ fn cms_one_vs_three(backend: Backend) {
     let scene = scene_json("cornell-box/scene.json");
     // The fits applied whatever their predicted gain, so the render phase controls vertices
     // (a table-wide fallback would render it as `path`).
-    let est = serde_json::json!({ "kind": "cms", "min_image_gain": null });
+    let est = serde_json::json!({ "kind": "cms", "min_image_gain": null, "min_fit_gain": null });
     let spec = spec(&scene, est.clone(), 7);
     let one = run_job(backend, 1, &spec);
     let three = run_job(backend, 3, &spec);
@@ -167,20 +170,26 @@ fn cms_one_vs_three(backend: Backend) {
     );
     // cms with `relative` (the default): surrogate 0..1, train 1..17, render 17..24.
     check_stats(&one, &[("surrogate", 1), ("train", 16), ("render", 7)]);
-    // The image variance travels with the training tables: the farm predicts the same gain
-    // as the in-process driver, to the bit (compared as the stats carry it, through JSON).
+    // The image variance travels with the training tables: the farm predicts the same gains
+    // as the in-process driver, to the bit (compared as the stats carry them, through JSON).
     let barrier = train_barrier(&one);
-    let gain = barrier["predicted_image_gain"].as_f64();
-    assert!(gain.is_some_and(|g| g > 0.0), "{barrier}");
-    let local_gain =
-        serde_json::from_str::<Option<f64>>(&serde_json::to_string(&local_gain).expect("json"))
-            .expect("json");
-    assert_eq!(
-        gain.map(f64::to_bits),
-        local_gain.map(f64::to_bits),
-        "{barrier}"
-    );
-    assert_eq!(train_barrier(&three)["predicted_image_gain"].as_f64(), gain);
+    let local_gain = serde_json::from_str::<[Option<f64>; 2]>(
+        &serde_json::to_string(&local_gain).expect("json"),
+    )
+    .expect("json");
+    for (name, local) in ["predicted_image_gain", "predicted_fit_gain"]
+        .into_iter()
+        .zip(local_gain)
+    {
+        let gain = barrier[name].as_f64();
+        assert!(gain.is_some_and(|g| g > 0.0), "{name}: {barrier}");
+        assert_eq!(
+            gain.map(f64::to_bits),
+            local.map(f64::to_bits),
+            "{name}: {barrier}"
+        );
+        assert_eq!(train_barrier(&three)[name].as_f64(), gain, "{name}");
+    }
     assert!(barrier["cells_solved"].as_u64() > Some(0), "{barrier}");
     let img = imageio::read_exr_bytes(&one.exr).expect("exr decodes");
     let beauty = img.main_layer().expect("beauty");
@@ -369,7 +378,7 @@ fn bad_train_uploads_are_4xx_json_and_the_task_is_redone() {
 fn coordinator_restart_between_train_and_render_finishes_identically() {
     let mut farm = Farm::start(Backend::Sqlite);
     let scene = scene_json("cornell-box/scene.json");
-    let est = serde_json::json!({ "kind": "cms", "relative": false, "training_spp": 8, "min_image_gain": null });
+    let est = serde_json::json!({ "kind": "cms", "relative": false, "training_spp": 8, "min_image_gain": null, "min_fit_gain": null });
     let id = farm
         .client
         .submit(&spec_two_train_tiles(&scene, est.clone(), 13));
@@ -428,7 +437,7 @@ fn coordinator_restart_between_train_and_render_finishes_identically() {
 #[test]
 fn cms_on_two_coordinators_sharing_one_postgres() {
     let scene = scene_json("cornell-box/scene.json");
-    let est = serde_json::json!({ "kind": "cms", "min_image_gain": null });
+    let est = serde_json::json!({ "kind": "cms", "min_image_gain": null, "min_fit_gain": null });
     // Both coordinators may run a barrier; exactly one advances the job each time.
     let run = run_on_two_coordinators(&spec(&scene, est.clone(), 21), Duration::from_secs(300));
     assert!(run.exr == local_cv_exr(&scene, &est, &run.status.job));

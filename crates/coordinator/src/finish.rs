@@ -394,6 +394,7 @@ async fn barrier(state: &AppState, job: &JobRow, phase: &PhaseRow) -> Result<Adv
                     cells_fallback,
                     rejected_samples: solved.rejected,
                     predicted_image_gain: solved.image_gain,
+                    predicted_fit_gain: solved.fit_gain,
                 };
                 Ok((blob, stats))
             }

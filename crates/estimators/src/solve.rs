@@ -76,6 +76,12 @@ pub struct SolvePolicy {
     /// ([`FallbackReason::LowImageGain`]). `-∞` (the default) never falls back for this
     /// reason. Used by [`crate::table::AccumulatorTable::solve`]; [`solve`] itself ignores it.
     pub min_image_gain: f64,
+    /// Smallest predicted fit gain of a table ([`crate::table::predicted_fit_gain`]: the
+    /// fraction of the controlled vertices' variance the fits remove) for them to be
+    /// applied; below it every cell of the table falls back ([`FallbackReason::LowFitGain`]).
+    /// `-∞` (the default) never falls back for this reason. Used by
+    /// [`crate::table::AccumulatorTable::solve`]; [`solve`] itself ignores it.
+    pub min_fit_gain: f64,
 }
 
 impl Default for SolvePolicy {
@@ -87,6 +93,7 @@ impl Default for SolvePolicy {
             min_partition_samples: 1,
             max_condition: 1e12,
             min_image_gain: f64::NEG_INFINITY,
+            min_fit_gain: f64::NEG_INFINITY,
         }
     }
 }
@@ -111,6 +118,10 @@ pub enum FallbackReason {
     /// The fits of the whole table are predicted to remove less of the image's variance than
     /// [`SolvePolicy::min_image_gain`] (a decision for the table, not for this cell).
     LowImageGain,
+    /// The fits of the whole table are predicted to remove less of the controlled vertices'
+    /// variance than [`SolvePolicy::min_fit_gain`] (a decision for the table, not for this
+    /// cell).
+    LowFitGain,
 }
 
 /// Outcome of a cell solve.
@@ -415,12 +426,34 @@ pub fn variance_reduction(acc: &CellAccumulator, co: &CellCoefficients) -> f64 {
             ag += a * p.g;
             aa += a * (a * p.diag + 2.0 * cross);
         }
-        let r0 = (syy - sy * sy / sw).max(0.0);
-        let mean = sy - ag;
-        let r = (syy - 2.0 * ab + aa - mean * mean / sw).max(0.0);
+        let r0 = centred(sy, syy, sw);
+        let r = centred(sy - ag, syy - 2.0 * ab + aa, sw);
         total += r0 - r;
     }
     if total.is_finite() { total } else { 0.0 }
+}
+
+/// Weighted sum of squares of a cell's training values about their weighted mean, summed
+/// over the channels of its colour mode: `Σ_c R₀` of [`variance_reduction`], the variance
+/// the plain estimator leaves at the cell's controlled vertices (training-weight units
+/// [Hua eq. 25, 29]). `0` for an empty cell or a version-1 accumulator (no value moments).
+pub fn value_variance(acc: &CellAccumulator) -> f64 {
+    let sw = acc.weight_sum();
+    if !(sw > 0.0) {
+        return 0.0;
+    }
+    let total: f64 = (0..acc.color().channels())
+        .map(|ch| {
+            let (sy, syy) = acc.value_moments(ch);
+            centred(sy, syy, sw)
+        })
+        .sum();
+    if total.is_finite() { total } else { 0.0 }
+}
+
+/// `Σwy² − (Σwy)²/Σw`, clamped at 0 against rounding.
+fn centred(sum: f64, sum_sq: f64, weight_sum: f64) -> f64 {
+    (sum_sq - sum * sum / weight_sum).max(0.0)
 }
 
 /// Common pre-checks; returns the diagnostics skeleton or the fallback coefficients.
@@ -689,7 +722,7 @@ pub const COEFFICIENTS_MAGIC: [u8; 4] = *b"CVCO";
 /// Encoding version of [`CellCoefficients`].
 pub const COEFFICIENTS_VERSION: u16 = 1;
 
-const FALLBACK_CODES: [FallbackReason; 8] = [
+const FALLBACK_CODES: [FallbackReason; 9] = [
     FallbackReason::Empty,
     FallbackReason::TooFewSamples,
     FallbackReason::TooFewEffectiveSamples,
@@ -698,6 +731,7 @@ const FALLBACK_CODES: [FallbackReason; 8] = [
     FallbackReason::IllConditioned,
     FallbackReason::NonFinite,
     FallbackReason::LowImageGain,
+    FallbackReason::LowFitGain,
 ];
 
 impl CellCoefficients {

@@ -158,6 +158,12 @@ impl OcvOptions {
 /// Default [`CmsOptions::min_image_gain`].
 pub const DEFAULT_MIN_IMAGE_GAIN: f64 = 3e-4;
 
+/// Default [`CmsOptions::min_fit_gain`]: a fit that removes a fraction `g` of the controlled
+/// vertices' variance gives at most `1/(1 − g)` at equal samples (1.25× at 0.2), about what
+/// the CV's per-sample cost takes back at equal time where the fits are kept
+/// (`docs/bench/README.md`).
+pub const DEFAULT_MIN_FIT_GAIN: f64 = 0.2;
+
 /// Options of the `cms` estimator [Hua 2023].
 ///
 /// | parameter | type | default | meaning |
@@ -172,6 +178,7 @@ pub const DEFAULT_MIN_IMAGE_GAIN: f64 = 3e-4;
 /// | `min_samples` | u64 | 16 | cells with fewer training samples fall back to the plain estimator |
 /// | `base` | `"mis"` \| `"balance"` | `"mis"` | base estimator (`α ≡ 0`): the job's MIS heuristic (= `path`) or balance [`CvBase`] |
 /// | `min_image_gain` | f64 \| null | `3e-4` | the fits are applied only when they are predicted to remove at least this fraction of the image's per-sample (relative) variance, measured on the training samples ([`crate::table::predicted_image_gain`]); below it every cell falls back and the render phase is traced as `path`. null always applies them. Chosen by equal-spp and equal-time measurements (`docs/bench/README.md`) |
+/// | `min_fit_gain` | f64 \| null | `0.2` | the fits are applied only when they remove at least this fraction of the variance at the vertices they control, over all cells, measured on the training samples ([`crate::table::predicted_fit_gain`]); below it every cell falls back and the render phase is traced as `path`. It bounds the equal-spp gain at `1/(1 − g)` whatever the image's noise is made of, so a small one cannot pay for the CV's per-sample cost. null always applies them. Chosen by equal-spp and equal-time measurements (`docs/bench/README.md`) |
 /// | `min_depth` | u32 | `1` | the CV is trained and applied only at path vertices of at least this depth (0 = the camera hit); shallower vertices use the base estimator. With 1, depth-2 (direct-lighting) jobs are exactly `path`. Chosen by equal-spp measurements (`docs/bench/README.md`): the CV at the camera hit costs more than it gains against the stratified (Sobol) pixel samples of the base estimator |
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -198,6 +205,8 @@ pub struct CmsOptions {
     pub min_depth: u32,
     /// Smallest predicted image gain for the fits to be applied; `None` always applies them.
     pub min_image_gain: Option<f64>,
+    /// Smallest predicted fit gain for the fits to be applied; `None` always applies them.
+    pub min_fit_gain: Option<f64>,
 }
 
 impl Default for CmsOptions {
@@ -214,6 +223,7 @@ impl Default for CmsOptions {
             base: CvBase::Mis,
             min_depth: 1,
             min_image_gain: Some(DEFAULT_MIN_IMAGE_GAIN),
+            min_fit_gain: Some(DEFAULT_MIN_FIT_GAIN),
         }
     }
 }
@@ -359,16 +369,15 @@ impl PhasedEstimator {
         {
             return Err(("ridge", "must be finite and ≥ 0"));
         }
-        if let Self::Cms(CmsOptions {
-            min_image_gain: Some(g),
-            ..
-        }) = self
-            && !g.is_finite()
-        {
-            return Err((
-                "min_image_gain",
-                "must be finite (or null to always apply the fits)",
-            ));
+        if let Self::Cms(o) = self {
+            for (name, gain) in [
+                ("min_image_gain", o.min_image_gain),
+                ("min_fit_gain", o.min_fit_gain),
+            ] {
+                if gain.is_some_and(|g| !g.is_finite()) {
+                    return Err((name, "must be finite (or null to always apply the fits)"));
+                }
+            }
         }
         if let Some(g) = grid {
             if g.contains(&0) {
@@ -388,6 +397,7 @@ impl PhasedEstimator {
                 ridge: o.ridge,
                 min_samples: o.min_samples,
                 min_image_gain: o.min_image_gain.unwrap_or(f64::NEG_INFINITY),
+                min_fit_gain: o.min_fit_gain.unwrap_or(f64::NEG_INFINITY),
                 ..crate::solve::SolvePolicy::default()
             },
             Self::OptimalMis(o) => crate::solve::SolvePolicy {

@@ -241,6 +241,9 @@ pub struct SolvedTable {
     /// Predicted image gain of the fits ([`predicted_image_gain`]) when the table's image
     /// variance was known (not part of the wire encoding).
     pub image_gain: Option<f64>,
+    /// Predicted fit gain ([`predicted_fit_gain`]) when the cells recorded their value
+    /// moments (not part of the wire encoding).
+    pub fit_gain: Option<f64>,
 }
 
 /// The image variance of two merged accumulator tables ([`AccumulatorTable::Moments`]):
@@ -269,6 +272,32 @@ pub fn predicted_image_gain(
         .filter_map(|(k, a)| Some(variance_reduction(a, coefficients.get(k)?)))
         .sum();
     Some(reduction / image)
+}
+
+/// Predicted fraction of the controlled vertices' variance that the fits remove:
+/// `Σ_cells variance_reduction / Σ_cells value_variance`, summed in key order
+/// ([`variance_reduction`], [`crate::solve::value_variance`]; in-sample, over the training
+/// samples; cells that fell back count in the denominator). `None` without a positive
+/// denominator (no value moments: version-1 accumulators).
+///
+/// It bounds what the fits can do to the image whatever its noise is made of: a CV that
+/// removes a fraction `g` of the variance where it acts gives at most `1/(1 − g)` at equal
+/// samples, reached only when all of the pixels' error sits at controlled vertices. With
+/// the CV's per-sample cost of +5…+25 % over `path`, a small `g` cannot pay at equal time;
+/// [`predicted_image_gain`] gives the other side (how much of the image's variance is at
+/// controlled vertices). Measured per scene in `docs/bench/README.md`.
+pub fn predicted_fit_gain(
+    cells: &BTreeMap<u64, CellAccumulator>,
+    coefficients: &BTreeMap<u64, CellCoefficients>,
+) -> Option<f64> {
+    let (mut reduction, mut variance) = (0.0, 0.0);
+    for (k, a) in cells {
+        variance += crate::solve::value_variance(a);
+        if let Some(co) = coefficients.get(k) {
+            reduction += variance_reduction(a, co);
+        }
+    }
+    (variance > 0.0).then(|| reduction / variance)
 }
 
 impl SolvedTable {
@@ -353,10 +382,12 @@ impl AccumulatorTable {
 
     /// Solves every cell ([`solve`] for moments [Hua eq. 32–33], the mean contributions for
     /// `per_light_cv` [Hua §7.2]) on up to `threads` threads. Cells are independent, so the
-    /// result does not depend on `threads`. For moments with a known image variance the
-    /// table's [`predicted_image_gain`] is recorded, and when it is below
-    /// [`SolvePolicy::min_image_gain`] every fitted cell falls back
-    /// ([`FallbackReason::LowImageGain`]): the render then pays no CV work anywhere.
+    /// result does not depend on `threads`. For moments the table's [`predicted_image_gain`]
+    /// (with a known image variance) and [`predicted_fit_gain`] are recorded; when the first
+    /// is below [`SolvePolicy::min_image_gain`] every fitted cell falls back
+    /// ([`FallbackReason::LowImageGain`]), else when the second is below
+    /// [`SolvePolicy::min_fit_gain`] ([`FallbackReason::LowFitGain`]): the render then pays
+    /// no CV work anywhere. An unknown gain makes no decision.
     pub fn solve(&self, policy: &SolvePolicy, threads: usize) -> SolvedTable {
         fn par<T: Sync>(
             cells: &BTreeMap<u64, T>,
@@ -396,17 +427,25 @@ impl AccumulatorTable {
             Self::Moments(t, image) => {
                 let mut out = par(t, threads, |a| (solve(a, policy), a.rejected()));
                 out.image_gain = predicted_image_gain(t, &out.coefficients, *image);
-                if let Some(g) = out.image_gain
-                    && policy.min_image_gain > f64::NEG_INFINITY
-                    && !(g >= policy.min_image_gain)
-                {
+                out.fit_gain = predicted_fit_gain(t, &out.coefficients);
+                let below = |gain: Option<f64>, min: f64| {
+                    gain.is_some_and(|g| min > f64::NEG_INFINITY && !(g >= min))
+                };
+                let reason = if below(out.image_gain, policy.min_image_gain) {
+                    Some(FallbackReason::LowImageGain)
+                } else if below(out.fit_gain, policy.min_fit_gain) {
+                    Some(FallbackReason::LowFitGain)
+                } else {
+                    None
+                };
+                if let Some(reason) = reason {
                     for co in out.coefficients.values_mut() {
                         if !co.is_fallback() {
                             *co = CellCoefficients::fallen_back(
                                 co.layout(),
                                 co.color(),
                                 *co.diagnostics(),
-                                FallbackReason::LowImageGain,
+                                reason,
                             );
                         }
                     }

@@ -6,10 +6,12 @@ mod common;
 use common::{Pdf, Setup, mean_var, sum3};
 use estimators::cell::{CellAccumulator, ColorMode, ComponentLayout, CvSample, training_weight};
 use estimators::solve::{
-    CellCoefficients, FallbackReason, SolvePolicy, SolveStatus, solve, solve_dense,
+    CellCoefficients, FallbackReason, SolvePolicy, SolveStatus, solve, solve_dense, value_variance,
     variance_reduction,
 };
-use estimators::table::{AccumulatorTable, encode_table, predicted_image_gain, solve_table};
+use estimators::table::{
+    AccumulatorTable, encode_table, predicted_fit_gain, predicted_image_gain, solve_table,
+};
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 use std::collections::BTreeMap;
@@ -959,6 +961,9 @@ fn variance_reduction_equals_its_definition_on_the_samples() {
                 (got - want).abs() < 1e-9 * scale,
                 "p {p} k {k} slope {slope}: {got} vs {want}"
             );
+            // The plain values' sum of squares is the cell's value variance.
+            let v = value_variance(&acc);
+            assert!((v - scale).abs() < 1e-9 * scale, "{v} vs {scale}");
             // A correlated cell loses variance (in RGB: the slope cancels in the channel
             // mean); a least-squares fit (or one shrunk toward zero by a ridge) never adds
             // any in-sample.
@@ -1061,6 +1066,81 @@ fn a_table_below_its_minimum_image_gain_falls_back_everywhere() {
     }
 }
 
+/// The fit gain is `Σ reduction / Σ value variance` over all cells (a cell that fell back
+/// counts in the denominator); below `min_fit_gain` every fitted cell falls back
+/// (`LowFitGain`), whether or not the image variance is known; a table whose cells are
+/// noise only has a small fit gain; the image gain's minimum is checked first.
+#[test]
+fn a_table_whose_fits_remove_little_of_their_cells_variance_falls_back_everywhere() {
+    let cells = gate_table(6);
+    let policy = SolvePolicy {
+        ridge: 1.0,
+        ..SolvePolicy::default()
+    };
+    let fitted = solve_table(&cells, &policy);
+    let (mut reduction, mut variance) = (0.0, 0.0);
+    for (k, a) in &cells {
+        reduction += variance_reduction(a, &fitted[k]);
+        variance += value_variance(a);
+    }
+    let gain = predicted_fit_gain(&cells, &fitted).unwrap();
+    assert!((gain - reduction / variance).abs() < 1e-15, "{gain}");
+    assert!(gain > 0.1 && gain < 0.9, "{gain}");
+    let solved_with = |min_fit: f64, min_image: f64, image: Option<f64>| {
+        AccumulatorTable::Moments(cells.clone(), image).solve(
+            &SolvePolicy {
+                min_fit_gain: min_fit,
+                min_image_gain: min_image,
+                ..policy
+            },
+            2,
+        )
+    };
+    let image = 10.0 * reduction;
+    for min in [gain - 0.01, f64::NEG_INFINITY] {
+        let kept = solved_with(min, f64::NEG_INFINITY, Some(image));
+        assert_eq!(kept.fit_gain, Some(gain));
+        assert!(encode_table(&kept.coefficients) == encode_table(&fitted));
+    }
+    let status = |t: &estimators::table::SolvedTable, reason| {
+        for (k, co) in &t.coefficients {
+            assert_eq!(co.alpha_sum(), [0.0; 3]);
+            let want = match fitted[k].diagnostics().status {
+                SolveStatus::Solved => SolveStatus::Fallback(reason),
+                other => other,
+            };
+            assert_eq!(co.diagnostics().status, want, "cell {k}");
+        }
+    };
+    for image in [Some(image), None] {
+        let off = solved_with(gain + 0.01, f64::NEG_INFINITY, image);
+        assert_eq!(off.fit_gain, Some(gain));
+        status(&off, FallbackReason::LowFitGain);
+    }
+    // Both below: the image gain's reason.
+    status(
+        &solved_with(gain + 0.01, 0.2, Some(image)),
+        FallbackReason::LowImageGain,
+    );
+    let back = CellCoefficients::decode(
+        &solved_with(gain + 0.01, f64::NEG_INFINITY, None).coefficients[&0].encode(),
+    )
+    .unwrap();
+    assert_eq!(
+        back.diagnostics().status,
+        SolveStatus::Fallback(FallbackReason::LowFitGain)
+    );
+    // Cells of pure noise: the fits remove only what they overfit.
+    let noise: BTreeMap<u64, CellAccumulator> = (0..6)
+        .map(|k| {
+            let r = recorded_cell(5, 2, 300, 700 + k, 0.0);
+            (k, accumulate(&r, 5, 2, ColorMode::Rgb))
+        })
+        .collect();
+    let noise_gain = predicted_fit_gain(&noise, &solve_table(&noise, &policy)).unwrap();
+    assert!((0.0..0.05).contains(&noise_gain), "{noise_gain}");
+}
+
 #[test]
 fn version_1_accumulators_decode_with_no_value_moments_and_remove_nothing() {
     let samples = recorded_cell(4, 2, 200, 7, 2.0);
@@ -1099,6 +1179,12 @@ fn version_1_accumulators_decode_with_no_value_moments_and_remove_nothing() {
     assert_eq!(co.encode(), solve(&acc, &SolvePolicy::default()).encode());
     assert_eq!(variance_reduction(&old, &co), 0.0);
     assert!(variance_reduction(&acc, &co) > 0.0);
+    // No value moments, no fit gain: a table of old cells makes no `min_fit_gain` decision.
+    assert_eq!(value_variance(&old), 0.0);
+    let one = |a: &CellAccumulator| BTreeMap::from([(0u64, a.clone())]);
+    let fitted = BTreeMap::from([(0u64, co)]);
+    assert_eq!(predicted_fit_gain(&one(&old), &fitted), None);
+    assert!(predicted_fit_gain(&one(&acc), &fitted).is_some_and(|g| g > 0.0));
     // Re-encoded, it is a version-2 accumulator with zero moments.
     assert_eq!(CellAccumulator::decode(&old.encode()).unwrap(), old);
 }

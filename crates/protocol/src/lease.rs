@@ -309,6 +309,10 @@ pub struct BarrierStats {
     /// the job's `min_image_gain` every cell falls back), when known.
     #[serde(default)]
     pub predicted_image_gain: Option<f64>,
+    /// Predicted fit gain (`estimators::table::predicted_fit_gain`; below the job's
+    /// `min_fit_gain` every cell falls back), when known.
+    #[serde(default)]
+    pub predicted_fit_gain: Option<f64>,
 }
 
 #[cfg(test)]

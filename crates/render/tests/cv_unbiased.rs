@@ -80,6 +80,7 @@ fn cms_coarse() -> Estimator {
         min_samples: 8,
         // The fits applied whatever their predicted gain: this tests their mechanics.
         min_image_gain: None,
+        min_fit_gain: None,
         ..CmsOptions::default()
     })
 }
@@ -105,6 +106,7 @@ fn cms_balance_base_without_shrinkage_is_unbiased_on_colour_lamp() {
         base: render::integrator::cv::CvBase::Balance,
         // The fits applied whatever their predicted gain: this tests their mechanics.
         min_image_gain: None,
+        min_fit_gain: None,
         ..CmsOptions::default()
     });
     check("scenes/colour-lamp/scene.json", e, 16, 16, 1024);
@@ -118,6 +120,7 @@ fn cms_absolute_mono_is_unbiased_on_cornell_box() {
         training_spp: 8,
         // The fits applied whatever their predicted gain: this tests their mechanics.
         min_image_gain: None,
+        min_fit_gain: None,
         ..CmsOptions::default()
     });
     check("scenes/cornell-box/scene.json", e, 16, 16, 1024);
@@ -176,6 +179,7 @@ fn cms_with_zero_alpha_equals_path_with_the_same_heuristic() {
                     base,
                     // The fits applied whatever their predicted gain: this tests their mechanics.
                     min_image_gain: None,
+                    min_fit_gain: None,
                     ..CmsOptions::default()
                 });
                 let (cv, report) = render(&s, e, spp, 9, None, opts);

@@ -165,6 +165,10 @@ pub struct EstimatorReport {
     /// ([`estimators::table::predicted_image_gain`]); `null` when not computed. Below the
     /// job's `min_image_gain` every cell falls back (`LowImageGain`).
     pub predicted_image_gain: Option<f64>,
+    /// Predicted fraction of the controlled vertices' variance the fits remove
+    /// ([`estimators::table::predicted_fit_gain`]); `null` when not computed. Below the
+    /// job's `min_fit_gain` every cell falls back (`LowFitGain`).
+    pub predicted_fit_gain: Option<f64>,
     /// Emitters of the scene.
     pub lights: u32,
     /// Partitioned CV components (lights or light clusters, env included).
@@ -1781,6 +1785,7 @@ pub fn render_estimator_image(
         overlapping_components: layout.overlapping,
         rejected_training_samples: solved.rejected,
         predicted_image_gain: solved.image_gain,
+        predicted_fit_gain: solved.fit_gain,
         ..EstimatorReport::default()
     };
     for co in solved.coefficients.values() {
