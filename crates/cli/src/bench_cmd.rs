@@ -3,7 +3,8 @@
 //!
 //! Each estimator renders the scene at a geometric series of sample counts (1, 2, 4, … spp,
 //! i.e. roughly doubling time budgets; or `--spp-series`) until its next render would push
-//! its total past `--max-seconds` (wall time). Every run records `(spp, seconds, relMSE, MSE)`
+//! its total past `--max-seconds` (wall time). The estimators take turns render by render
+//! (at each spp, seed by seed), so a drift of the machine's speed moves all of them alike. Every run records `(spp, seconds, relMSE, MSE)`
 //! plus its wall and CPU seconds; `seconds` is the clock the comparisons use (`--clock`):
 //! by default the **process CPU time** of rendering (all threads, from `/proc/self/stat`),
 //! which is far less disturbed than wall time when other jobs share the machine; `wall` is
@@ -146,6 +147,58 @@ pub struct Run {
     pub relmse: f64,
     /// MSE (or mean variance of the mean without a reference).
     pub mse: f64,
+}
+
+/// The renders of one estimator at one spp, one per seed, before they become a [`Run`].
+#[derive(Default)]
+struct Point {
+    /// Mean images, one per seed.
+    means: Vec<Vec<f32>>,
+    /// Variance image of the last render (one seed without a reference only).
+    last_var: Vec<f32>,
+    /// Summed wall and CPU seconds.
+    wall: f64,
+    cpu: f64,
+}
+
+impl Point {
+    /// The run: mean seconds and the error of the point (seed-to-seed with ≥ 2 seeds, else
+    /// against the reference or from the per-pixel variance).
+    fn finish(self, spp: u32, args: &BenchArgs, reference: Option<&[f32]>) -> Run {
+        let n = f64::from(args.seeds);
+        let (wall, cpu) = (self.wall / n, self.cpu / n);
+        let (relmse, mse) = if args.seeds >= 2 {
+            let views: Vec<&[f32]> = self.means.iter().map(Vec::as_slice).collect();
+            estimators::metrics::seed_variance_error(&views, reference)
+                .map_or((f64::NAN, f64::NAN), |e| (e.rel_mse, e.mse))
+        } else {
+            match reference {
+                Some(rf) => {
+                    let e = estimators::metrics::compare(&self.means[0], rf);
+                    (e.rel_mse, e.mse)
+                }
+                None => {
+                    let var = &self.last_var;
+                    let rel = estimators::metrics::estimated_rel_mse(&self.means[0], var)
+                        .unwrap_or(f64::NAN);
+                    let mse =
+                        var.iter().map(|v| f64::from(*v)).sum::<f64>() / var.len().max(1) as f64;
+                    (rel, mse)
+                }
+            }
+        };
+        Run {
+            spp,
+            seconds: match args.clock {
+                Clock::Cpu if cpu > 0.0 => cpu,
+                _ => wall,
+            },
+            wall_seconds: wall,
+            cpu_seconds: cpu,
+            relmse,
+            mse,
+        }
+    }
 }
 
 /// An estimator's series.
@@ -470,89 +523,72 @@ pub fn run(args: &BenchArgs) -> Result<ExitCode> {
         args.spp_series.clone()
     };
     let load_start = load_average();
-    let mut all = Vec::new();
-    for (label, est) in &items {
-        let st = RenderSettings {
-            estimator: *est,
-            ..st0
-        };
-        let mut runs: Vec<Run> = Vec::new();
-        let mut total = 0.0;
-        for &spp in &series_spp {
-            if let Some(last) = runs.last() {
+    // One point of the series of each estimator, interleaved: at every spp, seed by seed,
+    // the estimators take turns, so that a drift of the machine's speed (minutes long on a
+    // VM) moves every estimator's times alike instead of whichever ran in that minute.
+    let mut all: Vec<Series> = items
+        .iter()
+        .map(|(label, _)| Series {
+            label: label.clone(),
+            runs: Vec::new(),
+        })
+        .collect();
+    let mut totals = vec![0.0f64; items.len()];
+    let mut active = vec![true; items.len()];
+    for &spp in &series_spp {
+        for (i, se) in all.iter().enumerate() {
+            if let Some(last) = se.runs.last() {
                 let predicted = last.wall_seconds * f64::from(spp) / f64::from(last.spp)
                     * f64::from(args.seeds);
-                if total + predicted > args.max_seconds {
-                    break;
+                if totals[i] + predicted > args.max_seconds {
+                    active[i] = false;
                 }
             }
-            let (mut means, mut wall, mut cpu) = (Vec::new(), 0.0, 0.0);
-            let mut last_var: Vec<f32> = Vec::new();
-            for k in 0..args.seeds {
+        }
+        if !active.iter().any(|&a| a) {
+            break;
+        }
+        let mut points: Vec<Point> = items.iter().map(|_| Point::default()).collect();
+        for k in 0..args.seeds {
+            let seed = args.seed.wrapping_add(u64::from(k));
+            for (i, (label, est)) in items.iter().enumerate() {
+                if !active[i] {
+                    continue;
+                }
+                let settings = RenderSettings {
+                    estimator: *est,
+                    spp,
+                    seed,
+                    ..st0
+                };
                 let cpu0 = process_cpu_seconds();
-                let seed = args.seed.wrapping_add(u64::from(k));
-                let r = local_render::render_spp(
-                    &rs,
-                    &RenderSettings { spp, seed, ..st },
-                    &options,
-                    &|_, _| {},
-                )
-                .with_context(|| format!("rendering {label} at {spp} spp, seed {seed}"))?;
-                cpu += match (cpu0, process_cpu_seconds()) {
+                let r = local_render::render_spp(&rs, &settings, &options, &|_, _| {})
+                    .with_context(|| format!("rendering {label} at {spp} spp, seed {seed}"))?;
+                let pt = &mut points[i];
+                pt.cpu += match (cpu0, process_cpu_seconds()) {
                     (Some(a), Some(b)) => b - a,
                     _ => f64::NAN,
                 };
-                wall += r.stats.seconds;
-                means.push(
-                    r.film
-                        .mean_image()
-                        .into_iter()
-                        .flatten()
-                        .collect::<Vec<f32>>(),
-                );
+                pt.wall += r.stats.seconds;
+                pt.means
+                    .push(r.film.mean_image().into_iter().flatten().collect());
                 if args.seeds == 1 && reference.is_none() {
-                    last_var = r.film.variance_image().into_iter().flatten().collect();
+                    pt.last_var = r.film.variance_image().into_iter().flatten().collect();
                 }
             }
-            let n = f64::from(args.seeds);
-            let (wall, cpu) = (wall / n, cpu / n);
-            let (relmse, mse) = if args.seeds >= 2 {
-                let views: Vec<&[f32]> = means.iter().map(Vec::as_slice).collect();
-                estimators::metrics::seed_variance_error(&views, reference.as_deref())
-                    .map_or((f64::NAN, f64::NAN), |e| (e.rel_mse, e.mse))
-            } else {
-                match &reference {
-                    Some(rf) => {
-                        let e = estimators::metrics::compare(&means[0], rf);
-                        (e.rel_mse, e.mse)
-                    }
-                    None => {
-                        let rel = estimators::metrics::estimated_rel_mse(&means[0], &last_var)
-                            .unwrap_or(f64::NAN);
-                        let mse = last_var.iter().map(|v| f64::from(*v)).sum::<f64>()
-                            / last_var.len().max(1) as f64;
-                        (rel, mse)
-                    }
-                }
-            };
-            total += wall * n;
-            eprintln!("bench {label}: {spp} spp in {wall:.2} s, relMSE {relmse:.3e}");
-            runs.push(Run {
-                spp,
-                seconds: match args.clock {
-                    Clock::Cpu if cpu > 0.0 => cpu,
-                    _ => wall,
-                },
-                wall_seconds: wall,
-                cpu_seconds: cpu,
-                relmse,
-                mse,
-            });
         }
-        all.push(Series {
-            label: label.clone(),
-            runs,
-        });
+        for (i, pt) in points.into_iter().enumerate() {
+            if !active[i] {
+                continue;
+            }
+            let run = pt.finish(spp, args, reference.as_deref());
+            totals[i] += run.wall_seconds * f64::from(args.seeds);
+            eprintln!(
+                "bench {}: {spp} spp in {:.2} s, relMSE {:.3e}",
+                all[i].label, run.wall_seconds, run.relmse
+            );
+            all[i].runs.push(run);
+        }
     }
     let name = args
         .scene
@@ -592,7 +628,7 @@ pub fn run(args: &BenchArgs) -> Result<ExitCode> {
             None => "no reference: relMSE estimated from the per-pixel variance of the mean".into(),
         },
         format!(
-            "seconds = {} of rendering (scene preparation excluded); load average (1 min) at the start {}, at the end {}: where other jobs share the machine CPU time is much steadier than wall time, but cache and memory contention still move times, and with them equal-time speedups and overheads",
+            "seconds = {} of rendering (scene preparation excluded), the estimators taking turns render by render so that a drift of the machine's speed moves them alike; load average (1 min) at the start {}, at the end {}: where other jobs share the machine CPU time is much steadier than wall time, but cache and memory contention still move times, and with them equal-time speedups and overheads",
             match args.clock {
                 Clock::Cpu => "process CPU seconds (all render threads)",
                 Clock::Wall => "wall-clock seconds",
