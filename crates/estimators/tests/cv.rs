@@ -1004,14 +1004,24 @@ fn gate_table(cells: u64) -> BTreeMap<u64, CellAccumulator> {
     t
 }
 
-#[test]
-fn a_table_below_its_minimum_image_gain_falls_back_everywhere() {
+/// [`gate_table`] of 6 cells, the gate tests' policy (ridge 1) and its plain cell solves.
+fn gate_fixture() -> (
+    BTreeMap<u64, CellAccumulator>,
+    SolvePolicy,
+    BTreeMap<u64, CellCoefficients>,
+) {
     let cells = gate_table(6);
     let policy = SolvePolicy {
         ridge: 1.0,
         ..SolvePolicy::default()
     };
     let fitted = solve_table(&cells, &policy);
+    (cells, policy, fitted)
+}
+
+#[test]
+fn a_table_below_its_minimum_image_gain_falls_back_everywhere() {
+    let (cells, policy, fitted) = gate_fixture();
     let reduction: f64 = cells
         .iter()
         .map(|(k, a)| variance_reduction(a, &fitted[k]))
@@ -1072,12 +1082,7 @@ fn a_table_below_its_minimum_image_gain_falls_back_everywhere() {
 /// noise only has a small fit gain; the image gain's minimum is checked first.
 #[test]
 fn a_table_whose_fits_remove_little_of_their_cells_variance_falls_back_everywhere() {
-    let cells = gate_table(6);
-    let policy = SolvePolicy {
-        ridge: 1.0,
-        ..SolvePolicy::default()
-    };
-    let fitted = solve_table(&cells, &policy);
+    let (cells, policy, fitted) = gate_fixture();
     let (mut reduction, mut variance) = (0.0, 0.0);
     for (k, a) in &cells {
         reduction += variance_reduction(a, &fitted[k]);
