@@ -385,8 +385,9 @@ impl CellCoefficients {
 /// toward the shift [Hua eq. 14] that is equivalent to it. In the units of the training
 /// weights [Hua eq. 25, 29]: summed over the cells of a table and divided by the image's
 /// own sum of squares (the image variance of [`crate::table::AccumulatorTable::Moments`])
-/// it is the fraction of the image's per-sample variance the fits remove. `0` for the plain estimator (every `α = 0`, whose estimate is the
-/// weighted mean's: `R₀` is its sum, not the uncentred one).
+/// it is the fraction of the image's per-sample variance the fits remove. `0` for the plain
+/// estimator (every `α = 0`, whose estimate is the weighted mean's: `R₀` is its sum, not
+/// the uncentred one).
 pub fn variance_reduction(acc: &CellAccumulator, co: &CellCoefficients) -> f64 {
     let c = acc.color().channels();
     let k = acc.layout().overlapping as usize;

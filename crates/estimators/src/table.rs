@@ -266,12 +266,7 @@ pub fn predicted_image_gain(
     coefficients: &BTreeMap<u64, CellCoefficients>,
     image: Option<f64>,
 ) -> Option<f64> {
-    let image = image.filter(|&v| v > 0.0)?;
-    let reduction: f64 = cells
-        .iter()
-        .filter_map(|(k, a)| Some(variance_reduction(a, coefficients.get(k)?)))
-        .sum();
-    Some(reduction / image)
+    FitSums::of(cells, coefficients).image_gain(image)
 }
 
 /// Predicted fraction of the controlled vertices' variance that the fits remove:
@@ -290,14 +285,44 @@ pub fn predicted_fit_gain(
     cells: &BTreeMap<u64, CellAccumulator>,
     coefficients: &BTreeMap<u64, CellCoefficients>,
 ) -> Option<f64> {
-    let (mut reduction, mut variance) = (0.0, 0.0);
-    for (k, a) in cells {
-        variance += crate::solve::value_variance(a);
-        if let Some(co) = coefficients.get(k) {
-            reduction += variance_reduction(a, co);
+    FitSums::of(cells, coefficients).fit_gain()
+}
+
+/// The two sums behind [`predicted_image_gain`] and [`predicted_fit_gain`], made in one
+/// pass over the cells in key order.
+struct FitSums {
+    /// `Σ_cells variance_reduction` (cells with coefficients).
+    reduction: f64,
+    /// `Σ_cells value_variance` (all cells).
+    variance: f64,
+}
+
+impl FitSums {
+    fn of(
+        cells: &BTreeMap<u64, CellAccumulator>,
+        coefficients: &BTreeMap<u64, CellCoefficients>,
+    ) -> Self {
+        let mut sums = Self {
+            reduction: 0.0,
+            variance: 0.0,
+        };
+        for (k, a) in cells {
+            sums.variance += crate::solve::value_variance(a);
+            if let Some(co) = coefficients.get(k) {
+                sums.reduction += variance_reduction(a, co);
+            }
         }
+        sums
     }
-    (variance > 0.0).then(|| reduction / variance)
+
+    fn image_gain(&self, image: Option<f64>) -> Option<f64> {
+        let image = image.filter(|&v| v > 0.0)?;
+        Some(self.reduction / image)
+    }
+
+    fn fit_gain(&self) -> Option<f64> {
+        (self.variance > 0.0).then(|| self.reduction / self.variance)
+    }
 }
 
 impl SolvedTable {
@@ -426,8 +451,9 @@ impl AccumulatorTable {
         match self {
             Self::Moments(t, image) => {
                 let mut out = par(t, threads, |a| (solve(a, policy), a.rejected()));
-                out.image_gain = predicted_image_gain(t, &out.coefficients, *image);
-                out.fit_gain = predicted_fit_gain(t, &out.coefficients);
+                let sums = FitSums::of(t, &out.coefficients);
+                out.image_gain = sums.image_gain(*image);
+                out.fit_gain = sums.fit_gain();
                 let below = |gain: Option<f64>, min: f64| {
                     gain.is_some_and(|g| min > f64::NEG_INFINITY && !(g >= min))
                 };
