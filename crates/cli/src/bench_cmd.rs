@@ -4,8 +4,8 @@
 //! Each estimator renders the scene at a geometric series of sample counts (1, 2, 4, … spp,
 //! i.e. roughly doubling time budgets; or `--spp-series`) until its next render would push
 //! its total past `--max-seconds` (wall time). The estimators take turns render by render
-//! (at each spp, seed by seed), so a drift of the machine's speed moves all of them alike. Every run records `(spp, seconds, relMSE, MSE)`
-//! plus its wall and CPU seconds; `seconds` is the clock the comparisons use (`--clock`):
+//! (at each spp, seed by seed), so a drift of the machine's speed moves all of them alike.
+//! Every run records `(spp, seconds, relMSE, MSE)` plus its wall and CPU seconds; `seconds` is the clock the comparisons use (`--clock`):
 //! by default the **process CPU time** of rendering (all threads, from `/proc/self/stat`),
 //! which is far less disturbed than wall time when other jobs share the machine; `wall` is
 //! the alternative. Scene preparation is excluded (it is the same for all).
