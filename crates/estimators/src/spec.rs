@@ -480,6 +480,24 @@ mod tests {
             ..OptimalMisOptions::default()
         });
         assert_eq!(bad.validate().unwrap_err().0, "ridge");
+        for g in [f64::NAN, f64::INFINITY] {
+            let image = PhasedEstimator::Cms(CmsOptions {
+                min_image_gain: Some(g),
+                ..CmsOptions::default()
+            });
+            assert_eq!(image.validate().unwrap_err().0, "min_image_gain");
+            let fit = PhasedEstimator::Cms(CmsOptions {
+                min_fit_gain: Some(g),
+                ..CmsOptions::default()
+            });
+            assert_eq!(fit.validate().unwrap_err().0, "min_fit_gain");
+        }
+        let off = PhasedEstimator::Cms(CmsOptions {
+            min_image_gain: None,
+            min_fit_gain: None,
+            ..CmsOptions::default()
+        });
+        assert!(off.validate().is_ok());
         assert!(OcvOptions::default().validate().is_ok());
     }
 }
