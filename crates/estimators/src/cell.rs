@@ -133,6 +133,22 @@ pub struct CvSample<'a> {
     pub overlapping: &'a [f64],
 }
 
+/// The technique of a vertex's one-sample-per-technique estimator that drew a sample
+/// [Hua eq. 17]: NEE (a light sample) or the BSDF sample.
+///
+/// The accumulator keeps the light technique's sums apart (`Σw`, `Σwy`, `Σw λ/p`), so that
+/// [`crate::solve::variance_reduction`] can measure the variance the fits remove *within*
+/// each technique: the deterministic estimator takes one sample of each, so the spread
+/// between the techniques' means, which the pooled regression also sees, is no variance of
+/// its (see [`CellAccumulator::technique_sums`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Technique {
+    /// Next-event estimation: a point sampled on a light (or the env map).
+    Light,
+    /// The BSDF sample (and every sample whose technique is not told: [`CellAccumulator::add`]).
+    Bsdf,
+}
+
 /// Why a sample was not accumulated (it is counted in [`CellAccumulator::rejected`]).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Error)]
 pub enum SampleRejection {
@@ -208,6 +224,8 @@ pub struct PartitionMoments<'a> {
     pub b: &'a [f64],
     /// `Σ w λ_k/p`.
     pub g: f64,
+    /// The light technique's part of `g` ([`Technique::Light`]).
+    pub g_light: f64,
 }
 
 /// Normal-equation sums of one spatial cell.
@@ -230,13 +248,18 @@ pub struct CellAccumulator {
     b_overlap: Vec<f64>,
     /// `Σ w λ_j/p` of the `K` overlapping components (for centred residuals).
     g_overlap: Vec<f64>,
+    /// The light technique's `[Σ w, Σ w y_c]` (the first `1 + C` entries; see [`Technique`]).
+    light: [f64; 1 + CHANNELS],
+    /// The light technique's `Σ w λ_j/p` of the `K` overlapping components.
+    g_overlap_light: Vec<f64>,
     /// Sampled partition indices, strictly increasing.
     part_ids: Vec<u32>,
     /// Per entry of `part_ids`: the storage slot of its moments.
     part_slots: Vec<u32>,
     /// Per storage slot (first-touch order): accepted samples of the partition.
     part_counts: Vec<u64>,
-    /// Per storage slot: `[diag, cross_0..K, b_0..C, g]` with `g = Σ w λ_k/p`.
+    /// Per storage slot: `[diag, cross_0..K, b_0..C, g, g_light]` with `g = Σ w λ_k/p` and
+    /// `g_light` its light-technique part.
     part_data: Vec<f64>,
     /// Partition and storage slot of the most recently used partition (`u32::MAX` = none;
     /// hot-loop cache, not part of equality).
@@ -269,6 +292,8 @@ impl PartialEq for CellAccumulator {
             && self.dense == o.dense
             && self.b_overlap == o.b_overlap
             && self.g_overlap == o.g_overlap
+            && self.light == o.light
+            && self.g_overlap_light == o.g_overlap_light
             && self.part_ids == o.part_ids
             && self.part_slots.iter().zip(&o.part_slots).all(|(&a, &b)| {
                 let (a, b) = (a as usize, b as usize);
@@ -292,6 +317,8 @@ impl CellAccumulator {
             dense: vec![0.0; k * (k + 1) / 2],
             b_overlap: vec![0.0; k * color.channels()],
             g_overlap: vec![0.0; k],
+            light: [0.0; 1 + CHANNELS],
+            g_overlap_light: vec![0.0; k],
             part_ids: Vec::new(),
             part_slots: Vec::new(),
             part_counts: Vec::new(),
@@ -360,10 +387,10 @@ impl CellAccumulator {
     }
 
     fn stride(&self) -> usize {
-        2 + self.layout.overlapping as usize + self.color.channels()
+        3 + self.layout.overlapping as usize + self.color.channels()
     }
 
-    /// The moments `[diag, cross_0..K, b_0..C, g]` of storage slot `slot`.
+    /// The moments `[diag, cross_0..K, b_0..C, g, g_light]` of storage slot `slot`.
     fn entry(&self, slot: usize) -> &[f64] {
         let stride = self.stride();
         &self.part_data[slot * stride..(slot + 1) * stride]
@@ -379,6 +406,7 @@ impl CellAccumulator {
             cross: &d[1..1 + k],
             b: &d[1 + k..1 + k + c],
             g: d[1 + k + c],
+            g_light: d[2 + k + c],
         }
     }
 
@@ -406,6 +434,17 @@ impl CellAccumulator {
     /// `Σ w λ_i/p` of overlapping component `i`.
     pub fn g_overlapping(&self, i: usize) -> f64 {
         self.g_overlap[i]
+    }
+
+    /// The light technique's sums ([`Technique`]): `Σ w`, `Σ w y_c` per channel of the colour
+    /// mode (first `C` entries of the array) and `Σ w λ_j/p` of the overlapping components (the
+    /// partitions' parts are [`PartitionMoments::g_light`]). The BSDF technique's are the
+    /// totals minus these. All zero for an accumulator fed only through
+    /// [`add`](Self::add), or decoded from an encoding older than version 3.
+    pub fn technique_sums(&self) -> (f64, [f64; CHANNELS], &[f64]) {
+        let mut y = [0.0; CHANNELS];
+        y.copy_from_slice(&self.light[1..]);
+        (self.light[0], y, &self.g_overlap_light)
     }
 
     /// The sampled partitions in increasing index order.
@@ -472,7 +511,9 @@ impl CellAccumulator {
     }
 
     /// Adds one training sample with weight `weight` (see [`training_weight`]) and RGB value
-    /// `value` = `F = f/p`.
+    /// `value` = `F = f/p`, whose technique is not told: it is counted with
+    /// [`Technique::Bsdf`]'s sums, so an accumulator fed only through `add` has no
+    /// between-technique spread (see [`add_from`](Self::add_from)).
     ///
     /// On rejection nothing but the rejection counter changes.
     pub fn add(
@@ -481,7 +522,18 @@ impl CellAccumulator {
         value: [f64; CHANNELS],
         sample: &CvSample<'_>,
     ) -> Result<(), SampleRejection> {
-        let r = self.check_and_add(weight, value, sample);
+        self.add_from(Technique::Bsdf, weight, value, sample)
+    }
+
+    /// [`add`](Self::add) of a sample drawn by `technique`.
+    pub fn add_from(
+        &mut self,
+        technique: Technique,
+        weight: f64,
+        value: [f64; CHANNELS],
+        sample: &CvSample<'_>,
+    ) -> Result<(), SampleRejection> {
+        let r = self.check_and_add(technique == Technique::Light, weight, value, sample);
         if r.is_err() {
             self.rejected += 1;
         }
@@ -515,6 +567,7 @@ impl CellAccumulator {
 
     fn check_and_add(
         &mut self,
+        light: bool,
         w: f64,
         value: [f64; CHANNELS],
         s: &CvSample<'_>,
@@ -526,22 +579,23 @@ impl CellAccumulator {
         // the loops over components and channels unroll (same arithmetic, same bits).
         match (s.overlapping.len(), self.color) {
             (1, ColorMode::Rgb) => {
-                self.add_checked(w, value, s, &s.overlapping[..1], ColorMode::Rgb)
+                self.add_checked(light, w, value, s, &s.overlapping[..1], ColorMode::Rgb)
             }
             (1, ColorMode::Mono) => {
-                self.add_checked(w, value, s, &s.overlapping[..1], ColorMode::Mono)
+                self.add_checked(light, w, value, s, &s.overlapping[..1], ColorMode::Mono)
             }
-            (0, c) => self.add_checked(w, value, s, &[], c),
-            (2, c) => self.add_checked(w, value, s, &s.overlapping[..2], c),
-            (_, c) => self.add_checked(w, value, s, s.overlapping, c),
+            (0, c) => self.add_checked(light, w, value, s, &[], c),
+            (2, c) => self.add_checked(light, w, value, s, &s.overlapping[..2], c),
+            (_, c) => self.add_checked(light, w, value, s, s.overlapping, c),
         }
     }
 
     /// The body of [`add`](Self::add) after the component count check; `lam` is
-    /// `s.overlapping`, `color` is `self.color`.
+    /// `s.overlapping`, `color` is `self.color`, `light` whether [`Technique::Light`] drew it.
     #[inline(always)]
     fn add_checked(
         &mut self,
+        light: bool,
         w: f64,
         value: [f64; CHANNELS],
         s: &CvSample<'_>,
@@ -607,6 +661,15 @@ impl CellAccumulator {
             self.value[ch] += wy;
             self.value[c + ch] += wy * yc;
         }
+        if light {
+            self.light[0] += w;
+            for (ch, &yc) in y.iter().enumerate() {
+                self.light[1 + ch] += w * yc;
+            }
+            for (g, &l) in self.g_overlap_light.iter_mut().zip(lam) {
+                *g += w * (l * inv_p);
+            }
+        }
         for i in 0..k {
             let wri = w * (lam[i] * inv_p);
             let row = row_start(k, i);
@@ -619,7 +682,7 @@ impl CellAccumulator {
             self.g_overlap[i] += wri;
         }
         if let Some((id, rk)) = part {
-            let stride = 2 + k + c;
+            let stride = 3 + k + c;
             let slot = self.slot_for(id);
             self.part_counts[slot] += 1;
             let d = &mut self.part_data[slot * stride..(slot + 1) * stride];
@@ -632,6 +695,9 @@ impl CellAccumulator {
                 d[1 + k + ch] += wrk * yc;
             }
             d[1 + k + c] += wrk;
+            if light {
+                d[2 + k + c] += wrk;
+            }
         }
         Ok(())
     }
@@ -657,6 +723,12 @@ impl CellAccumulator {
             *a += b;
         }
         for (a, b) in self.g_overlap.iter_mut().zip(&other.g_overlap) {
+            *a += b;
+        }
+        for (a, b) in self.light.iter_mut().zip(&other.light) {
+            *a += b;
+        }
+        for (a, b) in self.g_overlap_light.iter_mut().zip(&other.g_overlap_light) {
             *a += b;
         }
         if other.part_ids.is_empty() {
@@ -735,9 +807,11 @@ impl CellAccumulator {
 /// Magic bytes opening an encoded accumulator.
 pub const MAGIC: [u8; 4] = *b"CVAC";
 /// Current encoding version (2 added the value moments and the component sums `Σ w λ/p`;
-/// version 1 is still read, with those zero, so its cells remove no variance in
-/// [`crate::solve::variance_reduction`]).
-pub const VERSION: u16 = 2;
+/// 3 the light technique's sums, [`Technique`]). Versions 1 and 2 are still read, with the
+/// sums they lack zero: a version-1 cell removes no variance in
+/// [`crate::solve::variance_reduction`], a version-2 cell has no between-technique spread
+/// (its within-technique figures are the pooled ones).
+pub const VERSION: u16 = 3;
 /// Size of the fixed header in bytes.
 const HEADER_LEN: usize = 4 + 2 + 1 + 1 + 4 + 4 + 8 + 8 + 8 + 8;
 
@@ -747,9 +821,10 @@ impl CellAccumulator {
     /// Layout: magic `CVAC`, `u16` version, `u8` colour (0 RGB, 1 mono), `u8` 0,
     /// `u32` P, `u32` K, `u64` samples, `u64` rejected, `f64` Σw, `f64` Σw²,
     /// `C` `f64` Σwy, `C` `f64` Σwy², `K(K+1)/2` `f64` (packed upper dense block), `K·C` `f64`
-    /// (overlapping `b`), `K` `f64` (overlapping `Σ w λ/p`), `u32` entry count, then per
-    /// sampled partition `u32` index, `u64` count and `2 + K + C` `f64` (diag, cross, `b`,
-    /// `Σ w λ/p`). Only sampled partitions are written.
+    /// (overlapping `b`), `K` `f64` (overlapping `Σ w λ/p`), the light technique's `f64` Σw,
+    /// `C` `f64` Σwy and `K` `f64` overlapping `Σ w λ/p`, `u32` entry count, then per
+    /// sampled partition `u32` index, `u64` count and `3 + K + C` `f64` (diag, cross, `b`,
+    /// `Σ w λ/p`, its light-technique part). Only sampled partitions are written.
     pub fn encode(&self) -> Vec<u8> {
         let mut out = Vec::with_capacity(self.encoded_len());
         out.extend_from_slice(&MAGIC);
@@ -773,6 +848,8 @@ impl CellAccumulator {
             .iter()
             .chain(&self.b_overlap)
             .chain(&self.g_overlap)
+            .chain(&self.light[..1 + self.color.channels()])
+            .chain(&self.g_overlap_light)
         {
             out.extend_from_slice(&v.to_le_bytes());
         }
@@ -790,10 +867,11 @@ impl CellAccumulator {
     /// Exact length of [`encode`](Self::encode)'s output.
     pub fn encoded_len(&self) -> usize {
         HEADER_LEN
-            + 8 * (2 * self.color.channels()
+            + 8 * (3 * self.color.channels()
+                + 1
                 + self.dense.len()
                 + self.b_overlap.len()
-                + self.g_overlap.len())
+                + 2 * self.g_overlap.len())
             + 4
             + self.part_ids.len() * (12 + 8 * self.stride())
     }
@@ -841,6 +919,16 @@ impl CellAccumulator {
                 *v = r.finite_f64()?;
             }
         }
+        if version >= 3 {
+            let c = color.channels();
+            acc.light[0] = r.nonneg_f64()?;
+            for v in &mut acc.light[1..1 + c] {
+                *v = r.finite_f64()?;
+            }
+            for v in acc.g_overlap_light.iter_mut() {
+                *v = r.finite_f64()?;
+            }
+        }
         let k = overlapping as usize;
         for i in 0..k {
             let at = r.pos;
@@ -850,8 +938,13 @@ impl CellAccumulator {
         }
         let entries = r.u32()? as u64;
         let stride = acc.stride();
-        // Version 1 entries have no `Σ w λ/p` (read as 0).
-        let stored = if version >= 2 { stride } else { stride - 1 };
+        // Version 1 entries have no `Σ w λ/p`, version 2 ones no light-technique part of
+        // it (read as 0).
+        let stored = match version {
+            1 => stride - 2,
+            2 => stride - 1,
+            _ => stride,
+        };
         let entry_len = 12 + 8 * stored as u64;
         let remaining = (bytes.len() - r.pos) as u64;
         if entries > u64::from(partitions) || entries * entry_len > remaining {
@@ -875,12 +968,14 @@ impl CellAccumulator {
             acc.part_ids.push(id);
             acc.part_counts.push(count);
             acc.part_data.push(r.nonneg_f64()?);
-            for _ in 1..stride - 1 {
+            for _ in 1..stride - 2 {
                 let v = r.finite_f64()?;
                 acc.part_data.push(v);
             }
-            acc.part_data
-                .push(if version >= 2 { r.finite_f64()? } else { 0.0 });
+            for present in [version >= 2, version >= 3] {
+                acc.part_data
+                    .push(if present { r.finite_f64()? } else { 0.0 });
+            }
         }
         if r.pos != bytes.len() {
             return Err(CellError::Trailing(bytes.len() - r.pos));

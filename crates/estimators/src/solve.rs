@@ -375,19 +375,34 @@ impl CellCoefficients {
     }
 }
 
-/// In-sample variance the coefficients `co` remove from the training samples of `acc`:
-/// `Σ_c (R₀ − R)` over the channels of the colour mode, with the plain estimator's weighted
-/// sum of squares about its mean `R₀ = Σwy² − (Σwy)²/Σw` and the controlled one's about
-/// its own mean, `R = Σw(y − αᵀg)² − (Σw(y − αᵀg))²/Σw` with
-/// `Σw(y − αᵀg)² = Σwy² − 2αᵀb + αᵀAα` (`g = λ/p`, [Hua eq. 21]) and
-/// `Σw(y − αᵀg) = Σwy − αᵀΣwg`. Centred because a constant added to every sample's value
-/// does not change the estimator's variance, and the ridge shrinks `α` toward zero, not
-/// toward the shift [Hua eq. 14] that is equivalent to it. In the units of the training
-/// weights [Hua eq. 25, 29]: summed over the cells of a table and divided by the image's
-/// own sum of squares (the image variance of [`crate::table::AccumulatorTable::Moments`])
-/// it is the fraction of the image's per-sample variance the fits remove. `0` for the plain
-/// estimator (every `α = 0`, whose estimate is the weighted mean's: `R₀` is its sum, not
-/// the uncentred one).
+/// In-sample variance the coefficients `co` remove from the training samples of `acc`,
+/// **within each technique**: `Σ_c (R₀ − R)` over the channels of the colour mode, with the
+/// plain estimator's sum of squares `R₀` and the controlled one's `R` (below).
+///
+/// A vertex's estimate takes one sample of each technique (NEE and BSDF) [Hua eq. 17], so
+/// its variance is the sum of the techniques' own variances: the spread *between* the
+/// techniques' mean values — large wherever one technique does the work, e.g. a small light
+/// that NEE finds and the BSDF sample misses — is no variance of the estimator, although the
+/// pooled regression sees it and its fit "explains" it with the components' technique-like
+/// `λ/p`. Hence the sums of squares are pooled minus between-technique:
+///
+/// ```text
+/// R  = Σw(r − r̄)² − W_L W_B / W · (r̄_L − r̄_B)²,    r = y − αᵀg,  g = λ/p,
+/// Σw(y − αᵀg)² = Σwy² − 2αᵀb + αᵀAα   [Hua eq. 21],   Σw(y − αᵀg) = Σwy − αᵀΣwg,
+/// ```
+///
+/// `r̄_L`, `r̄_B` the light and BSDF techniques' weighted means (their sums:
+/// [`CellAccumulator::technique_sums`]), `W_L`, `W_B` their weights; `R₀` is `R` at `α = 0`.
+/// Centred (per technique) because a constant added to every sample's value does not
+/// change the estimator's variance, and the ridge shrinks `α` toward zero, not toward the
+/// shift [Hua eq. 14] that is equivalent to it. What remains pooled is the spread of each
+/// technique's mean over the cell's vertices, which the fit may partly explain too: the
+/// figure is an in-sample, optimistic one. In the units of the training weights [Hua eq. 25,
+/// 29]: summed over the cells of a table and divided by the image's own sum of squares (the
+/// image variance of [`crate::table::AccumulatorTable::Moments`]) it is the fraction of the
+/// image's per-sample variance the fits remove. `0` for the plain estimator (every
+/// `α = 0`). An accumulator without technique sums (fed only through
+/// [`CellAccumulator::add`], or decoded from version 2) gives the pooled figure.
 pub fn variance_reduction(acc: &CellAccumulator, co: &CellCoefficients) -> f64 {
     let c = acc.color().channels();
     let k = acc.layout().overlapping as usize;
@@ -400,8 +415,9 @@ pub fn variance_reduction(acc: &CellAccumulator, co: &CellCoefficients) -> f64 {
     if plain || !(sw > 0.0) || co.layout != acc.layout() || co.color != acc.color() {
         return 0.0;
     }
+    let (wl, yl, gl_overlap) = acc.technique_sums();
     let mut total = 0.0;
-    for ch in 0..c {
+    for (ch, &yl) in yl.iter().enumerate().take(c) {
         let (sy, syy) = acc.value_moments(ch);
         if syy == 0.0 {
             // Every value zero, or moments not recorded (a version-1 accumulator): nothing
@@ -409,12 +425,13 @@ pub fn variance_reduction(acc: &CellAccumulator, co: &CellCoefficients) -> f64 {
             continue;
         }
         let ao = |j: usize| co.overlapping_alpha[j * c + ch];
-        // αᵀb and αᵀAα: the overlapping block, then each fitted partition's diagonal and
-        // cross terms.
-        let (mut ab, mut aa, mut ag) = (0.0, 0.0, 0.0);
-        for i in 0..k {
+        // αᵀb, αᵀAα, αᵀΣwg and its light-technique part: the overlapping block, then each
+        // fitted partition's diagonal and cross terms.
+        let (mut ab, mut aa, mut ag, mut ag_light) = (0.0, 0.0, 0.0, 0.0);
+        for (i, &gl) in gl_overlap.iter().enumerate() {
             ab += ao(i) * acc.b_overlapping(i)[ch];
             ag += ao(i) * acc.g_overlapping(i);
+            ag_light += ao(i) * gl;
             for j in 0..k {
                 aa += ao(i) * acc.dense(i, j) * ao(j);
             }
@@ -425,31 +442,53 @@ pub fn variance_reduction(acc: &CellAccumulator, co: &CellCoefficients) -> f64 {
             let cross: f64 = (0..k).map(|j| p.cross[j] * ao(j)).sum();
             ab += a * p.b[ch];
             ag += a * p.g;
+            ag_light += a * p.g_light;
             aa += a * (a * p.diag + 2.0 * cross);
         }
-        let r0 = centred(sy, syy, sw);
-        let r = centred(sy - ag, syy - 2.0 * ab + aa, sw);
+        let r0 = within(centred(sy, syy, sw), sw, wl, sy, yl);
+        let r = within(
+            centred(sy - ag, syy - 2.0 * ab + aa, sw),
+            sw,
+            wl,
+            sy - ag,
+            yl - ag_light,
+        );
         total += r0 - r;
     }
     if total.is_finite() { total } else { 0.0 }
 }
 
-/// Weighted sum of squares of a cell's training values about their weighted mean, summed
-/// over the channels of its colour mode: `Σ_c R₀` of [`variance_reduction`], the variance
-/// the plain estimator leaves at the cell's controlled vertices (training-weight units
-/// [Hua eq. 25, 29]). `0` for an empty cell or a version-1 accumulator (no value moments).
+/// Weighted sum of squares of a cell's training values about their techniques' weighted
+/// means, summed over the channels of its colour mode: `Σ_c R₀` of [`variance_reduction`],
+/// the variance the plain estimator leaves at the cell's controlled vertices
+/// (training-weight units [Hua eq. 25, 29]). `0` for an empty cell or a version-1
+/// accumulator (no value moments).
 pub fn value_variance(acc: &CellAccumulator) -> f64 {
     let sw = acc.weight_sum();
     if !(sw > 0.0) {
         return 0.0;
     }
+    let (wl, yl, _) = acc.technique_sums();
     let total: f64 = (0..acc.color().channels())
         .map(|ch| {
             let (sy, syy) = acc.value_moments(ch);
-            centred(sy, syy, sw)
+            within(centred(sy, syy, sw), sw, wl, sy, yl[ch])
         })
         .sum();
     if total.is_finite() { total } else { 0.0 }
+}
+
+/// A pooled centred sum of squares `pooled` (total weight `w`, total weighted sum `sum`)
+/// less its between-technique part `W_L W_B / W · (m_L − m_B)²`, the light technique having
+/// weight `w_light` and weighted sum `sum_light`; clamped at 0 against rounding. Without
+/// both techniques' weight the pooled figure is the within one.
+fn within(pooled: f64, w: f64, w_light: f64, sum: f64, sum_light: f64) -> f64 {
+    let w_bsdf = w - w_light;
+    if !(w_light > 0.0 && w_bsdf > 0.0) {
+        return pooled;
+    }
+    let d = sum_light / w_light - (sum - sum_light) / w_bsdf;
+    (pooled - w_light * w_bsdf / w * d * d).max(0.0)
 }
 
 /// `Σwy² − (Σwy)²/Σw`, clamped at 0 against rounding.

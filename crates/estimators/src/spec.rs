@@ -160,8 +160,9 @@ pub const DEFAULT_MIN_IMAGE_GAIN: f64 = 3e-4;
 
 /// Default [`CmsOptions::min_fit_gain`]: a fit that removes a fraction `g` of the controlled
 /// vertices' variance gives at most `1/(1 − g)` at equal samples (1.25× at 0.2), about what
-/// the CV's per-sample cost takes back at equal time where the fits are kept
-/// (`docs/bench/README.md`).
+/// the CV's per-sample cost takes back at equal time where the fits are kept; the scenes
+/// measured fall on either side with a margin of 1.35× or more (`docs/bench/README.md`,
+/// "Within a technique").
 pub const DEFAULT_MIN_FIT_GAIN: f64 = 0.2;
 
 /// Options of the `cms` estimator [Hua 2023].
@@ -178,7 +179,7 @@ pub const DEFAULT_MIN_FIT_GAIN: f64 = 0.2;
 /// | `min_samples` | u64 | 16 | cells with fewer training samples fall back to the plain estimator |
 /// | `base` | `"mis"` \| `"balance"` | `"mis"` | base estimator (`α ≡ 0`): the job's MIS heuristic (= `path`) or balance [`CvBase`] |
 /// | `min_image_gain` | f64 \| null | `3e-4` | the fits are applied only when they are predicted to remove at least this fraction of the image's per-sample (relative) variance, measured on the training samples ([`crate::table::predicted_image_gain`]); below it every cell falls back and the render phase is traced as `path`. null always applies them. Chosen by equal-spp and equal-time measurements (`docs/bench/README.md`) |
-/// | `min_fit_gain` | f64 \| null | `0.2` | the fits are applied only when they remove at least this fraction of the variance at the vertices they control, over all cells, measured on the training samples ([`crate::table::predicted_fit_gain`]); below it every cell falls back and the render phase is traced as `path`. It bounds the equal-spp gain at `1/(1 − g)` whatever the image's noise is made of, so a small one cannot pay for the CV's per-sample cost. null always applies them. Chosen by equal-spp and equal-time measurements (`docs/bench/README.md`) |
+/// | `min_fit_gain` | f64 \| null | `0.2` | the fits are applied only when they remove at least this fraction of the variance at the vertices they control (within each technique: the estimator takes one NEE and one BSDF sample, so the spread between the two techniques is no variance of it), over all cells, measured on the training samples ([`crate::table::predicted_fit_gain`]); below it every cell falls back and the render phase is traced as `path`. It bounds the equal-spp gain at `1/(1 − g)` whatever the image's noise is made of, so a small one cannot pay for the CV's per-sample cost. null always applies them. Chosen by equal-spp and equal-time measurements (`docs/bench/README.md`) |
 /// | `min_depth` | u32 | `1` | the CV is trained and applied only at path vertices of at least this depth (0 = the camera hit); shallower vertices use the base estimator. With 1, depth-2 (direct-lighting) jobs are exactly `path`. Chosen by equal-spp measurements (`docs/bench/README.md`): the CV at the camera hit costs more than it gains against the stratified (Sobol) pixel samples of the base estimator |
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]

@@ -272,8 +272,11 @@ pub fn predicted_image_gain(
 /// Predicted fraction of the controlled vertices' variance that the fits remove:
 /// `Σ_cells variance_reduction / Σ_cells value_variance`, summed in key order
 /// ([`variance_reduction`], [`crate::solve::value_variance`]; in-sample, over the training
-/// samples; cells that fell back count in the denominator). `None` without a positive
-/// denominator (no value moments: version-1 accumulators).
+/// samples; cells that fell back count in the denominator), both measured within each
+/// technique (NEE, BSDF), as the one-sample-per-technique estimator's variance is. It is
+/// negative when the fits add variance within the techniques (a fit that only separated the
+/// techniques' means: one small light that NEE finds and the BSDF sample misses). `None`
+/// without a positive denominator (no value moments: version-1 accumulators).
 ///
 /// It bounds what the fits can do to the image whatever its noise is made of: a CV that
 /// removes a fraction `g` of the variance where it acts gives at most `1/(1 − g)` at equal

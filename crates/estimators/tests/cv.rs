@@ -4,7 +4,9 @@
 mod common;
 
 use common::{Pdf, Setup, mean_var, sum3};
-use estimators::cell::{CellAccumulator, ColorMode, ComponentLayout, CvSample, training_weight};
+use estimators::cell::{
+    CellAccumulator, ColorMode, ComponentLayout, CvSample, Technique, training_weight,
+};
 use estimators::solve::{
     CellCoefficients, FallbackReason, SolvePolicy, SolveStatus, solve, solve_dense, value_variance,
     variance_reduction,
@@ -894,29 +896,62 @@ fn recorded_cell(p: u32, k: u32, n: usize, seed: u64, slope: f64) -> Vec<Recorde
         .collect()
 }
 
+/// The technique of recorded sample `i`: NEE and BSDF samples alternate, as a vertex
+/// records them.
+fn technique_of(i: usize) -> Technique {
+    if i.is_multiple_of(2) {
+        Technique::Light
+    } else {
+        Technique::Bsdf
+    }
+}
+
 fn accumulate(samples: &[Recorded], p: u32, k: u32, color: ColorMode) -> CellAccumulator {
     let mut acc = CellAccumulator::new(ComponentLayout::new(p, k).unwrap(), color);
-    for (w, v, pdf, part, lam) in samples {
+    for (i, (w, v, pdf, part, lam)) in samples.iter().enumerate() {
         let s = CvSample {
             pdf: *pdf,
             partition: *part,
             overlapping: lam,
         };
-        acc.add(*w, *v, &s).unwrap();
+        acc.add_from(technique_of(i), *w, *v, &s).unwrap();
     }
     acc
 }
 
+/// Weighted sum of squares of `x` about each technique's own weighted mean ([`technique_of`]
+/// the index), the variance of a one-sample-per-technique estimator.
+fn within_technique_ss(w: &[f64], x: &[f64]) -> f64 {
+    let mut ss = 0.0;
+    for t in [Technique::Light, Technique::Bsdf] {
+        let idx: Vec<usize> = (0..w.len()).filter(|&i| technique_of(i) == t).collect();
+        let sw: f64 = idx.iter().map(|&i| w[i]).sum();
+        let mean = idx.iter().map(|&i| w[i] * x[i]).sum::<f64>() / sw;
+        ss += idx
+            .iter()
+            .map(|&i| w[i] * (x[i] - mean).powi(2))
+            .sum::<f64>();
+    }
+    ss
+}
+
 #[test]
 fn variance_reduction_equals_its_definition_on_the_samples() {
-    for (p, k, color, ridge, slope, seed) in [
-        (6, 2, ColorMode::Rgb, 0.0, 1.0, 1),
-        (6, 2, ColorMode::Rgb, 1.0, 0.3, 2),
-        (0, 3, ColorMode::Mono, 1e-6, 2.0, 3),
-        (9, 0, ColorMode::Rgb, 0.5, 0.0, 4),
-        (4, 1, ColorMode::Mono, 1.0, 1.0, 5),
+    for (p, k, color, ridge, slope, offset, seed) in [
+        (6, 2, ColorMode::Rgb, 0.0, 1.0, 0.0, 1),
+        (6, 2, ColorMode::Rgb, 1.0, 0.3, 2.0, 2),
+        (0, 3, ColorMode::Mono, 1e-6, 2.0, -1.0, 3),
+        (9, 0, ColorMode::Rgb, 0.5, 0.0, 5.0, 4),
+        (4, 1, ColorMode::Mono, 1.0, 1.0, 0.5, 5),
     ] {
-        let samples = recorded_cell(p, k, 300, seed, slope);
+        let mut samples = recorded_cell(p, k, 300, seed, slope);
+        // The light technique's values sit `offset` above the BSDF's: a spread between the
+        // techniques that is no variance of the estimator.
+        for (i, s) in samples.iter_mut().enumerate() {
+            if technique_of(i) == Technique::Light {
+                s.1 = s.1.map(|v| v + offset);
+            }
+        }
         let acc = accumulate(&samples, p, k, color);
         let policy = SolvePolicy {
             ridge,
@@ -924,17 +959,17 @@ fn variance_reduction_equals_its_definition_on_the_samples() {
         };
         for co in [solve(&acc, &policy), solve_dense(&acc, &policy)] {
             assert!(!co.is_fallback());
-            // Brute force: the plain values' weighted sum of squares about their weighted
-            // mean minus the controlled values' about theirs, channel by channel.
+            // Brute force: the plain values' weighted sum of squares about their technique's
+            // weighted mean minus the controlled values' about theirs, channel by channel.
             let c = color.channels();
+            let w: Vec<f64> = samples.iter().map(|s| s.0).collect();
             let (mut want, mut scale) = (0.0, 0.0);
             for ch in 0..c {
                 let y = |v: &[f64; 3]| match color {
                     ColorMode::Rgb => v[ch],
                     ColorMode::Mono => (v[0] + v[1] + v[2]) / 3.0,
                 };
-                let sw: f64 = samples.iter().map(|s| s.0).sum();
-                let mean = samples.iter().map(|s| s.0 * y(&s.1)).sum::<f64>() / sw;
+                let plain: Vec<f64> = samples.iter().map(|s| y(&s.1)).collect();
                 let controlled: Vec<f64> = samples
                     .iter()
                     .map(|(_, v, pdf, part, lam)| {
@@ -945,16 +980,9 @@ fn variance_reduction_equals_its_definition_on_the_samples() {
                         })[if c == 1 { 0 } else { ch }]
                     })
                     .collect();
-                let cmean = samples
-                    .iter()
-                    .zip(&controlled)
-                    .map(|(s, x)| s.0 * x)
-                    .sum::<f64>()
-                    / sw;
-                for (s, x) in samples.iter().zip(&controlled) {
-                    want += s.0 * ((y(&s.1) - mean).powi(2) - (x - cmean).powi(2));
-                    scale += s.0 * (y(&s.1) - mean).powi(2);
-                }
+                let r0 = within_technique_ss(&w, &plain);
+                want += r0 - within_technique_ss(&w, &controlled);
+                scale += r0;
             }
             let got = variance_reduction(&acc, &co);
             assert!(
@@ -965,12 +993,10 @@ fn variance_reduction_equals_its_definition_on_the_samples() {
             let v = value_variance(&acc);
             assert!((v - scale).abs() < 1e-9 * scale, "{v} vs {scale}");
             // A correlated cell loses variance (in RGB: the slope cancels in the channel
-            // mean); a least-squares fit (or one shrunk toward zero by a ridge) never adds
-            // any in-sample.
+            // mean).
             if slope >= 1.0 && color == ColorMode::Rgb {
                 assert!(got > 0.2 * scale, "{got} of {scale}");
             }
-            assert!(got > -1e-9 * scale, "{got}");
         }
         // The plain estimator removes nothing.
         assert_eq!(
@@ -978,6 +1004,56 @@ fn variance_reduction_equals_its_definition_on_the_samples() {
             0.0
         );
     }
+}
+
+/// The Cornell box's cells: one small light, which NEE finds (`λ_light/p ≈ 1`, value the
+/// irradiance and its noise) and the BSDF sample misses (`λ_bsdf/p = 1`, value 0). The
+/// pooled regression explains the techniques' means with the two components and claims
+/// most of the variance; the estimator, one sample of each technique, has none of that
+/// spread, and the fit removes (nearly) nothing within a technique.
+#[test]
+fn a_fit_that_only_separates_the_techniques_removes_no_variance() {
+    let mut rng = Pcg64::seed_from_u64(11);
+    let layout = ComponentLayout::new(1, 1).unwrap();
+    let mut within = CellAccumulator::new(layout, ColorMode::Rgb);
+    let mut pooled = CellAccumulator::new(layout, ColorMode::Rgb);
+    for i in 0..2000u32 {
+        let (t, value, sample) = if i.is_multiple_of(2) {
+            // NEE: a point on the light, whose BSDF density is small.
+            let pb = 0.02 * rng.random::<f64>();
+            let irradiance = 1.0 + 0.3 * (rng.random::<f64>() - 0.5);
+            (Technique::Light, [irradiance; 3], (1.0 + pb, 1.0, pb))
+        } else {
+            // The BSDF sample: misses the light.
+            (Technique::Bsdf, [0.0; 3], (1.0, 0.0, 1.0))
+        };
+        let (pdf, lp, lb) = sample;
+        let lam = [lb];
+        let s = CvSample {
+            pdf,
+            partition: (lp > 0.0).then_some((0, lp)),
+            overlapping: &lam,
+        };
+        within.add_from(t, 1.0, value, &s).unwrap();
+        pooled.add(1.0, value, &s).unwrap();
+    }
+    let gain = |acc: &CellAccumulator| {
+        let co = solve(acc, &SolvePolicy::default());
+        assert!(!co.is_fallback());
+        let one = BTreeMap::from([(0u64, acc.clone())]);
+        predicted_fit_gain(&one, &BTreeMap::from([(0u64, co)])).unwrap()
+    };
+    // The same sums but for the technique split: the same coefficients.
+    assert_eq!(
+        solve(&within, &SolvePolicy::default()).encode(),
+        solve(&pooled, &SolvePolicy::default()).encode()
+    );
+    let (g_pooled, g_within) = (gain(&pooled), gain(&within));
+    assert!(g_pooled > 0.9, "pooled fit gain {g_pooled}");
+    assert!(
+        g_within.abs() < 0.05,
+        "within-technique fit gain {g_within}"
+    );
 }
 
 /// A table of `cells` recorded cells (the even ones correlated, the odd ones noise) and
@@ -1146,33 +1222,48 @@ fn a_table_whose_fits_remove_little_of_their_cells_variance_falls_back_everywher
     assert!((0.0..0.05).contains(&noise_gain), "{noise_gain}");
 }
 
+/// The version-`to` encoding (1 or 2) of a version-3 accumulator with `k` overlapping
+/// components and `c` channels: version 2 lacks the light technique's sums (after the
+/// overlapping `Σ w λ/p`) and each partition entry's last `f64` (their light part); version 1
+/// also the 2·C value moments after Σw², the K overlapping `Σ w λ/p` after the overlapping
+/// `b` and each entry's `Σ w λ/p`.
+fn downgrade(v3: &[u8], to: u16, k: usize, c: usize) -> Vec<u8> {
+    let header = 4 + 2 + 1 + 1 + 4 + 4 + 8 + 8 + 8 + 8;
+    let dense = 8 * (k * (k + 1) / 2 + k * c);
+    let mut out = v3[..header].to_vec();
+    let mut at = header;
+    if to >= 2 {
+        out.extend_from_slice(&v3[at..at + 8 * 2 * c]);
+    }
+    at += 8 * 2 * c;
+    out.extend_from_slice(&v3[at..at + dense]);
+    at += dense;
+    if to >= 2 {
+        out.extend_from_slice(&v3[at..at + 8 * k]);
+    }
+    at += 8 * k + 8 * (1 + c + k);
+    out.extend_from_slice(&v3[at..at + 4]);
+    at += 4;
+    let entry = 12 + 8 * (3 + k + c);
+    let dropped = if to >= 2 { 8 } else { 16 };
+    while at < v3.len() {
+        out.extend_from_slice(&v3[at..at + entry - dropped]);
+        at += entry;
+    }
+    assert_eq!(at, v3.len());
+    out[4..6].copy_from_slice(&to.to_le_bytes());
+    out
+}
+
 #[test]
 fn version_1_accumulators_decode_with_no_value_moments_and_remove_nothing() {
     let samples = recorded_cell(4, 2, 200, 7, 2.0);
     let acc = accumulate(&samples, 4, 2, ColorMode::Rgb);
-    let v2 = acc.encode();
-    // Version 1 = the same bytes without the 2·C value moments after Σw², the K overlapping
-    // `Σ w λ/p` after the overlapping `b` and each partition entry's `Σ w λ/p` (its last f64).
-    let (k, c) = (2usize, 3usize);
-    let header = 4 + 2 + 1 + 1 + 4 + 4 + 8 + 8 + 8 + 8;
-    let dense = 8 * (k * (k + 1) / 2 + k * c);
-    let mut v1 = v2[..header].to_vec();
-    let mut at = header + 8 * 2 * c;
-    v1.extend_from_slice(&v2[at..at + dense]);
-    at += dense + 8 * k;
-    v1.extend_from_slice(&v2[at..at + 4]);
-    at += 4;
-    let entry = 12 + 8 * (2 + k + c);
-    while at < v2.len() {
-        v1.extend_from_slice(&v2[at..at + entry - 8]);
-        at += entry;
-    }
-    assert_eq!(at, v2.len());
-    v1[4..6].copy_from_slice(&1u16.to_le_bytes());
+    let v1 = downgrade(&acc.encode(), 1, 2, 3);
     let old = CellAccumulator::decode(&v1).unwrap();
     assert_eq!(old.value_moments(0), (0.0, 0.0));
     assert_eq!(old.g_overlapping(1), 0.0);
-    assert!(old.partitions().all(|p| p.g == 0.0));
+    assert!(old.partitions().all(|p| p.g == 0.0 && p.g_light == 0.0));
     for (a, b) in old.partitions().zip(acc.partitions()) {
         assert_eq!(
             (a.id, a.count, a.diag, a.cross, a.b),
@@ -1190,6 +1281,45 @@ fn version_1_accumulators_decode_with_no_value_moments_and_remove_nothing() {
     let fitted = BTreeMap::from([(0u64, co)]);
     assert_eq!(predicted_fit_gain(&one(&old), &fitted), None);
     assert!(predicted_fit_gain(&one(&acc), &fitted).is_some_and(|g| g > 0.0));
-    // Re-encoded, it is a version-2 accumulator with zero moments.
+    // Re-encoded, it is a current accumulator with zero moments.
+    assert_eq!(CellAccumulator::decode(&old.encode()).unwrap(), old);
+}
+
+#[test]
+fn version_2_accumulators_decode_with_no_technique_sums_and_pooled_figures() {
+    let mut samples = recorded_cell(4, 2, 200, 8, 2.0);
+    for (i, s) in samples.iter_mut().enumerate() {
+        if technique_of(i) == Technique::Light {
+            s.1 = s.1.map(|v| v + 3.0);
+        }
+    }
+    let acc = accumulate(&samples, 4, 2, ColorMode::Rgb);
+    let old = CellAccumulator::decode(&downgrade(&acc.encode(), 2, 2, 3)).unwrap();
+    // Every sum but the technique split is kept.
+    assert_eq!(old.value_moments(1), acc.value_moments(1));
+    assert_eq!(old.g_overlapping(1), acc.g_overlapping(1));
+    let (wl, yl, gl) = old.technique_sums();
+    assert_eq!((wl, yl), (0.0, [0.0; 3]));
+    assert!(gl.iter().all(|&g| g == 0.0));
+    assert!(old.partitions().all(|p| p.g_light == 0.0));
+    // Its figures are those of the same samples added without their techniques (pooled).
+    let mut pooled = CellAccumulator::new(acc.layout(), ColorMode::Rgb);
+    for (w, v, pdf, part, lam) in &samples {
+        let s = CvSample {
+            pdf: *pdf,
+            partition: *part,
+            overlapping: lam,
+        };
+        pooled.add(*w, *v, &s).unwrap();
+    }
+    assert_eq!(old, pooled);
+    let co = solve(&old, &SolvePolicy::default());
+    assert_eq!(co.encode(), solve(&acc, &SolvePolicy::default()).encode());
+    assert_eq!(
+        variance_reduction(&old, &co),
+        variance_reduction(&pooled, &co)
+    );
+    // The light samples' offset is pooled variance, not within-technique variance.
+    assert!(value_variance(&old) > 1.5 * value_variance(&acc));
     assert_eq!(CellAccumulator::decode(&old.encode()).unwrap(), old);
 }

@@ -1,7 +1,9 @@
 //! Property tests: merge algebra, encoding round trips, decoding arbitrary bytes, solve
 //! stability.
 
-use estimators::cell::{CellAccumulator, CellError, ColorMode, ComponentLayout, CvSample};
+use estimators::cell::{
+    CellAccumulator, CellError, ColorMode, ComponentLayout, CvSample, Technique,
+};
 use estimators::solve::{SolvePolicy, solve, solve_dense};
 use proptest::prelude::*;
 
@@ -12,6 +14,7 @@ struct Smp {
     pdf: f64,
     part: Option<(u32, f64)>,
     lam: Vec<f64>,
+    light: bool,
 }
 
 const P: u32 = 7;
@@ -28,20 +31,28 @@ fn smp() -> impl Strategy<Value = Smp> {
         0.01f64..50.0,
         prop::option::of((0..P, 0.0f64..20.0)),
         prop::collection::vec(0.0f64..20.0, K as usize),
+        any::<bool>(),
     )
-        .prop_map(|(w, v, pdf, part, lam)| Smp {
+        .prop_map(|(w, v, pdf, part, lam, light)| Smp {
             w,
             v,
             pdf,
             part,
             lam,
+            light,
         })
 }
 
 fn build(samples: &[Smp], color: ColorMode) -> CellAccumulator {
     let mut acc = CellAccumulator::new(layout(), color);
     for s in samples {
-        acc.add(
+        let technique = if s.light {
+            Technique::Light
+        } else {
+            Technique::Bsdf
+        };
+        acc.add_from(
+            technique,
             s.w,
             s.v,
             &CvSample {
