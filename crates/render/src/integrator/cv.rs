@@ -85,7 +85,9 @@ use std::ops::Range;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
-use estimators::cell::{CellAccumulator, ColorMode, ComponentLayout, CvSample, training_weight};
+use estimators::cell::{
+    CellAccumulator, ColorMode, ComponentLayout, CvSample, Technique, training_weight,
+};
 use estimators::perlight::MeanContributionAccumulator;
 use estimators::solve::{CellCoefficients, SolvePolicy, SolveStatus};
 pub use estimators::spec::{
@@ -597,12 +599,13 @@ impl std::hash::Hasher for KeyHasher {
 
 type KeyMap = HashMap<u32, usize, std::hash::BuildHasherDefault<KeyHasher>>;
 
-/// One training sample of a moments accumulator: [`CellAccumulator::add`]'s arguments and
-/// the cell (64 bytes).
+/// One training sample of a moments accumulator: [`CellAccumulator::add_from`]'s arguments
+/// and the cell (64 bytes).
 #[derive(Clone, Copy, Debug)]
 struct TrainRecord {
     key: u32,
-    /// Partition index, `u32::MAX` for none.
+    /// Partition index ([`NO_PARTITION`] for none) in the low 31 bits, and
+    /// [`BSDF_TECHNIQUE`] set when the BSDF sample drew it (else NEE).
     partition: u32,
     weight: f64,
     value: [f64; 3],
@@ -610,6 +613,11 @@ struct TrainRecord {
     lambda_partition: f64,
     lambda_bsdf: f64,
 }
+
+/// [`TrainRecord::partition`] of a sample in no partition.
+const NO_PARTITION: u32 = u32::MAX >> 1;
+/// [`TrainRecord::partition`]'s technique bit.
+const BSDF_TECHNIQUE: u32 = 1 << 31;
 
 /// Records a band logs at most before adding them to its own cells (64 MiB; a default job's
 /// band logs a quarter of that). The spill points depend only on the record count, so the
@@ -652,13 +660,19 @@ impl TileCells {
         for r in log {
             if let CellAcc::Moments(acc) = self.get(r.key, ctx) {
                 let lb = [r.lambda_bsdf];
+                let partition = r.partition & !BSDF_TECHNIQUE;
                 let sample = CvSample {
                     pdf: r.pdf,
-                    partition: (r.partition != u32::MAX)
-                        .then_some((r.partition, r.lambda_partition)),
+                    partition: (partition != NO_PARTITION)
+                        .then_some((partition, r.lambda_partition)),
                     overlapping: &lb,
                 };
-                let _ = acc.add(r.weight, r.value, &sample);
+                let technique = if r.partition & BSDF_TECHNIQUE != 0 {
+                    Technique::Bsdf
+                } else {
+                    Technique::Light
+                };
+                let _ = acc.add_from(technique, r.weight, r.value, &sample);
             }
         }
     }
@@ -907,11 +921,13 @@ impl VertexObserver for Policy<'_, '_> {
                     let t = r.throughput;
                     training_weight(f64::from(t.x + t.y + t.z) / 3.0, self.surrogate)
                 };
-                for s in samples.iter().flatten() {
-                    let (partition, lambda_partition) = s.partition.unwrap_or((u32::MAX, 0.0));
+                // `samples` is `[NEE, BSDF]`.
+                for (s, technique) in samples.iter().zip([0, BSDF_TECHNIQUE]) {
+                    let Some(s) = s else { continue };
+                    let (partition, lambda_partition) = s.partition.unwrap_or((NO_PARTITION, 0.0));
                     let rec = TrainRecord {
                         key,
-                        partition,
+                        partition: partition | technique,
                         weight: w0 * s.scale * s.scale,
                         value: s.value,
                         pdf: s.pdf,
