@@ -244,6 +244,10 @@ pub struct SolvedTable {
     /// Predicted fit gain ([`predicted_fit_gain`]) when the cells recorded their value
     /// moments (not part of the wire encoding).
     pub fit_gain: Option<f64>,
+    /// Why every fitted cell fell back table-wide ([`FallbackReason::LowImageGain`] or
+    /// [`FallbackReason::LowFitGain`]), `None` when the fits stand (not part of the wire
+    /// encoding).
+    pub switched_off: Option<FallbackReason>,
 }
 
 /// The image variance of two merged accumulator tables ([`AccumulatorTable::Moments`]):
@@ -467,6 +471,7 @@ impl AccumulatorTable {
                 } else {
                     None
                 };
+                out.switched_off = reason;
                 if let Some(reason) = reason {
                     for co in out.coefficients.values_mut() {
                         if !co.is_fallback() {

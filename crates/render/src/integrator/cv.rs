@@ -163,6 +163,11 @@ pub struct EstimatorReport {
     pub cells_fallback: BTreeMap<String, u64>,
     /// Training samples rejected (non-finite).
     pub rejected_training_samples: u64,
+    /// Training tiles, and of them those that stopped recording after their first
+    /// [`TRAIN_PROBE_SPP`] samples per pixel ([`TrainTile::stopped`]).
+    pub training_tiles: u32,
+    /// See [`Self::training_tiles`].
+    pub training_tiles_stopped: u32,
     /// Predicted fraction of the image's per-sample variance the fits remove
     /// ([`estimators::table::predicted_image_gain`]); `null` when not computed. Below the
     /// job's `min_image_gain` every cell falls back (`LowImageGain`).
@@ -633,7 +638,7 @@ const TRAIN_LOG_MAX: usize = 1 << 20;
 /// per-band cells cost a first touch (allocations, partition inserts) per cell, light and
 /// band plus a merge of every band — 18 points of the 70 % a many-lights training sample
 /// costs over `path` (`cv_overhead`, one thread: the same count as one band per tile).
-#[derive(Default)]
+#[derive(Clone, Default)]
 struct TileCells {
     index: KeyMap,
     cells: Vec<(u32, CellAcc)>,
@@ -994,7 +999,39 @@ pub struct TrainTile {
     pub out: TileFilm,
     /// Cell accumulators of the tile (keys: [`CvJob::table_len`] cell indices).
     pub cells: AccumulatorTable,
+    /// Whether the tile stopped recording after its first [`TRAIN_PROBE_SPP`] samples per
+    /// pixel (its own fits were predicted not to pay; the rest was traced as `path`).
+    pub stopped: bool,
 }
+
+/// The tile probe's minima: each of the job's lowered by [`PROBE_MARGIN`] of its size, since
+/// a tile's few samples per cell make its in-sample gains noisy and a tile stopped by mistake
+/// loses most of its training data.
+fn probe_policy(mut policy: SolvePolicy) -> SolvePolicy {
+    for m in [&mut policy.min_image_gain, &mut policy.min_fit_gain] {
+        if m.is_finite() {
+            *m -= PROBE_MARGIN * m.abs();
+        }
+    }
+    policy
+}
+
+/// See [`probe_policy`].
+const PROBE_MARGIN: f64 = 0.5;
+
+/// Training samples per pixel a training tile records before it checks its own table
+/// against the job's `min_image_gain` / `min_fit_gain` (the table-wide switch of
+/// [`AccumulatorTable::solve`], applied to the tile's cells alone, with the minima lowered by
+/// [`probe_policy`]). Below either, the tile
+/// traces the rest of its training samples as `path` and reports only these: on a scene
+/// whose fits cannot pay, the whole job would fall back at the train barrier anyway, and
+/// recording costs +25…+45 % per training sample (most of such a job's overhead). The
+/// decision depends only on the tile's own samples (fixed by the job), so it is the same on
+/// every worker and for any thread count. A tile of a moments estimator (`cms`,
+/// `optimal_mis`) is always recorded in these two passes, each pixel adding all its samples
+/// in index order, so the bits do not depend on whether a minimum is set (with none, no probe
+/// decision is made).
+pub const TRAIN_PROBE_SPP: u32 = 2;
 
 /// What a render-phase tile produced: film, rays, and per pixel the summed CV term
 /// (controlled − plain) and the cell of the first vertex (−1 for none), row-major.
@@ -1175,7 +1212,7 @@ impl<'a> CvJob<'a> {
             table: None,
             surrogate: None,
         };
-        let t = Banded::run(&self.ctx, tile, samples, input, None);
+        let t = Banded::run(&self.ctx, tile, samples, input, None, None);
         TileFilm {
             film: t.film,
             rays: t.rays,
@@ -1203,17 +1240,68 @@ impl<'a> CvJob<'a> {
             table: None,
             surrogate,
         };
+        let width = self.ctx.rs.width;
+        let policy = self.solve_policy();
+        // Moments tables are recorded in two passes, the probe's samples and the rest (the
+        // same bits whether or not a minimum asks for the probe's decision).
+        let split = self.ctx.kind != Kind::PerLight && samples.len() > TRAIN_PROBE_SPP as usize;
+        let probe_end = if split {
+            samples.start + TRAIN_PROBE_SPP
+        } else {
+            samples.end
+        };
         let fold = InOrderFold::default();
-        let t = Banded::run(&self.ctx, tile, samples, input, Some(&fold));
+        let t = Banded::run(
+            &self.ctx,
+            tile,
+            samples.start..probe_end,
+            input,
+            Some(&fold),
+            None,
+        );
         // Every band's samples, added in band order (see [`BAND_ROWS`]).
-        let image = image_variance(&t.film, self.ctx.rs.width, surrogate);
-        let cells = cells_table(self.ctx.kind, fold.finish(), image);
+        let mut cells = fold.finish();
+        let (mut film, mut rays) = (t.film, t.rays);
+        let mut stopped = false;
+        if split {
+            let rest = probe_end..samples.end;
+            if policy.min_image_gain > f64::NEG_INFINITY || policy.min_fit_gain > f64::NEG_INFINITY
+            {
+                let probe = cells_table(
+                    self.ctx.kind,
+                    cells.clone(),
+                    image_variance(&film, width, surrogate),
+                );
+                stopped = probe.solve(&probe_policy(policy), 1).switched_off.is_some();
+                if stopped {
+                    // The rest as `path`: no records, none of the CV's extra rays.
+                    let plain = PhaseInput {
+                        kind: PhaseKind::Plain,
+                        table: None,
+                        surrogate: None,
+                    };
+                    let r = Banded::run(&self.ctx, tile, rest, plain, None, Some(&film));
+                    return Ok(TrainTile {
+                        out: TileFilm {
+                            film: r.film,
+                            rays: rays + r.rays,
+                        },
+                        cells: probe,
+                        stopped,
+                    });
+                }
+            }
+            let fold = InOrderFold::default();
+            let r = Banded::run(&self.ctx, tile, rest, input, Some(&fold), Some(&film));
+            film = r.film;
+            rays += r.rays;
+            cells.absorb(fold.finish(), &self.ctx);
+        }
+        let image = image_variance(&film, width, surrogate);
         Ok(TrainTile {
-            out: TileFilm {
-                film: t.film,
-                rays: t.rays,
-            },
-            cells,
+            out: TileFilm { film, rays },
+            cells: cells_table(self.ctx.kind, cells, image),
+            stopped,
         })
     }
 
@@ -1271,7 +1359,7 @@ impl<'a> CvJob<'a> {
             table: Some(table),
             surrogate: None,
         };
-        let t = Banded::run(&self.ctx, tile, samples, input, None);
+        let t = Banded::run(&self.ctx, tile, samples, input, None, None);
         RenderTile {
             out: TileFilm {
                 film: t.film,
@@ -1411,13 +1499,15 @@ impl InOrderFold {
 impl Banded {
     /// Renders `tile` as bands of full-width rows in parallel: [`BAND_ROWS`] rows for a
     /// training tile (its table depends on them), [`PIXEL_BAND_ROWS`] otherwise. A training
-    /// tile hands each band's cells to `fold`.
+    /// tile hands each band's cells to `fold`. The samples are added to `start` (the tile's
+    /// film of its earlier samples) when given.
     fn run(
         ctx: &CvContext<'_>,
         tile: TileRect,
         samples: Range<u32>,
         input: PhaseInput<'_>,
         fold: Option<&InOrderFold>,
+        start: Option<&Film>,
     ) -> Self {
         let rows = match input.kind {
             PhaseKind::Train => BAND_ROWS,
@@ -1435,7 +1525,19 @@ impl Banded {
             .par_iter()
             .enumerate()
             .map(|(i, &b)| {
-                let mut out = run_tile(ctx, b, samples.clone(), input);
+                let base = start.map(|f| {
+                    let w = f.width as usize;
+                    let at = (b.y0 - f.y0) as usize * w;
+                    Film {
+                        x0: b.x0,
+                        y0: b.y0,
+                        width: b.width,
+                        height: b.height,
+                        pixels: f.pixels[at..at + b.height as usize * w].to_vec(),
+                        rejected: 0,
+                    }
+                });
+                let mut out = run_tile(ctx, b, samples.clone(), input, base);
                 if let Some(f) = fold {
                     f.submit(i, std::mem::take(&mut out.cells), ctx);
                 }
@@ -1451,7 +1553,7 @@ impl Banded {
                 width: tile.width,
                 height: tile.height,
                 pixels: Vec::with_capacity(tile.pixel_count() as usize),
-                rejected: 0,
+                rejected: start.map_or(0, |f| f.rejected),
             },
             rays: 0,
             cv_sum: Vec::new(),
@@ -1488,11 +1590,13 @@ fn merge_in_order(
 }
 
 /// The image variance of a training tile's film, in the units of its cells' sums (see
-/// [`AccumulatorTable::Moments`]): `Σ_pixels Σ_c w_p Σ (L − L̄)²` (each pixel's
-/// [`Pixel::squared_deviations`](crate::film::Pixel::squared_deviations)), with
-/// `w_p = training_weight(1, surrogate_p)` — `1/(s_p + ε)²` with a surrogate, else 1 — as a
-/// training sample of the pixel is weighted besides its throughput [Hua eq. 25]. Pixels in
-/// row-major order, so the bits depend only on the film.
+/// [`AccumulatorTable::Moments`]): `Σ_pixels Σ_c w_p n_p/(n_p − 1) Σ (L − L̄)²` (each pixel's
+/// [`Pixel::squared_deviations`](crate::film::Pixel::squared_deviations) over its `n_p`
+/// samples, made unbiased: `n_p` times the sample variance, as the cells' sums are `n`
+/// samples' worth, so a tile probed after 2 spp and a 16-spp tile give the same figure in
+/// expectation), with `w_p = training_weight(1, surrogate_p)` — `1/(s_p + ε)²` with a
+/// surrogate, else 1 — as a training sample of the pixel is weighted besides its throughput
+/// [Hua eq. 25]. Pixels in row-major order, so the bits depend only on the film.
 fn image_variance(film: &Film, image_width: u32, surrogate: Option<&[f64]>) -> f64 {
     let mut total = 0.0;
     for (row, y) in film
@@ -1504,7 +1608,10 @@ fn image_variance(film: &Film, image_width: u32, surrogate: Option<&[f64]>) -> f
             let at = y as usize * image_width as usize + x as usize;
             let w = training_weight(1.0, surrogate.and_then(|s| s.get(at).copied()));
             let ss: f64 = p.squared_deviations().iter().map(|d| d.max(0.0)).sum();
-            total += w * ss;
+            if p.count >= 2 {
+                let n = p.count as f64;
+                total += w * (n / (n - 1.0)) * ss;
+            }
         }
     }
     if total.is_finite() { total } else { 0.0 }
@@ -1544,11 +1651,14 @@ struct TileOut {
     cell_id: Vec<f32>,
 }
 
+/// Renders `samples` of `tile`, adding them to `start` (the tile's film of earlier samples,
+/// so that every pixel sums all its samples in index order) or to a new film.
 fn run_tile(
     ctx: &CvContext<'_>,
     tile: TileRect,
     samples: Range<u32>,
     input: PhaseInput<'_>,
+    start: Option<Film>,
 ) -> TileOut {
     let PhaseInput {
         kind,
@@ -1557,7 +1667,8 @@ fn run_tile(
     } = input;
     let rs = ctx.rs;
     let st = &ctx.st;
-    let mut film = Film::new_rect(tile.x0, tile.y0, tile.width, tile.height);
+    let mut film =
+        start.unwrap_or_else(|| Film::new_rect(tile.x0, tile.y0, tile.width, tile.height));
     let mut cells = TileCells::default();
     let n = tile.pixel_count() as usize;
     let mut cv_sum = vec![[0.0f64; 3]; if kind == PhaseKind::Apply { n } else { 0 }];
@@ -1779,8 +1890,10 @@ pub fn render_estimator_image(
     // ---- merge in canonical tile order, solve ----
     let t0 = Instant::now();
     let mut tables = Vec::with_capacity(outs.len());
+    let (training_tiles, mut training_tiles_stopped) = (outs.len() as u32, 0);
     for o in outs {
         let o = o?;
+        training_tiles_stopped += u32::from(o.stopped);
         film.merge(&o.out.film);
         rays += o.out.rays;
         tables.push(o.cells);
@@ -1794,6 +1907,8 @@ pub fn render_estimator_image(
         surrogate_spp: ph.surrogate.len() as u32,
         training_spp: ph.train.len() as u32,
         render_spp: ph.render.len() as u32,
+        training_tiles,
+        training_tiles_stopped,
         grid_resolution: job.grid_resolution(),
         cells: solved.coefficients.len() as u64,
         lights: rs.lights.len() as u32,
@@ -1906,7 +2021,8 @@ mod tests {
     #[test]
     fn image_variance_weighs_each_pixel_by_its_own_surrogate() {
         // A 2×1 tile at (2, 1) of a 4×3 image: pixel (2, 1) gets samples 1, 3 (squared
-        // deviations 1 + 1 per channel), pixel (3, 1) gets 0, 4, 8 in red only (16 + 0 + 16).
+        // deviations 1 + 1 per channel, times n/(n − 1) = 2), pixel (3, 1) gets 0, 4, 8 in red
+        // only (16 + 0 + 16, times 3/2).
         let mut film = Film::new_rect(2, 1, 2, 1);
         for v in [1.0, 3.0] {
             film.pixel_mut(2, 1)
@@ -1916,11 +2032,11 @@ mod tests {
             film.pixel_mut(3, 1)
                 .add(Vec3::new(v, 0.0, 0.0), Vec3::ZERO, Vec3::Z);
         }
-        assert_eq!(image_variance(&film, 4, None), 3.0 * 2.0 + 32.0);
+        assert_eq!(image_variance(&film, 4, None), 3.0 * 4.0 + 48.0);
         let mut surrogate = vec![f64::NAN; 12];
         surrogate[4 + 2] = 0.99; // w = 1
         surrogate[4 + 3] = 1.99; // w = 1/4
-        let want = 6.0 + 32.0 / 4.0;
+        let want = 12.0 + 48.0 / 4.0;
         let got = image_variance(&film, 4, Some(&surrogate));
         assert!((got - want).abs() < 1e-12, "{got} vs {want}");
         // A pixel with one sample has no spread to count.
