@@ -471,14 +471,7 @@ fn training_table_bits_do_not_depend_on_threads() {
             height: 128,
         };
         let bits = |threads: usize| {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap();
-            let cells = pool
-                .install(|| job.train_tile(tile, train.clone(), surrogate.as_deref()))
-                .unwrap()
-                .cells;
+            let cells = train_on_threads(&job, tile, &train, surrogate.as_deref(), threads).cells;
             // The whole table, image variance included.
             cells.encode()
         };
@@ -491,6 +484,22 @@ fn training_table_bits_do_not_depend_on_threads() {
             );
         }
     }
+}
+
+/// `job`'s training tile `tile` rendered on a pool of `threads` threads.
+fn train_on_threads(
+    job: &render::integrator::cv::CvJob<'_>,
+    tile: render::TileRect,
+    samples: &std::ops::Range<u32>,
+    surrogate: Option<&[f64]>,
+    threads: usize,
+) -> render::integrator::cv::TrainTile {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap();
+    pool.install(|| job.train_tile(tile, samples.clone(), surrogate))
+        .unwrap()
 }
 
 /// A training tile probes its own fits after `TRAIN_PROBE_SPP` samples per pixel: on the
@@ -523,13 +532,7 @@ fn a_training_tile_whose_own_fits_cannot_pay_records_only_its_probe() {
         let job = CvJob::new(&rs, &st).unwrap().expect("a phased estimator");
         let range = job.phases().train.clone();
         let surrogate = job.needs_surrogate().then(|| vec![0.5; 64 * 64]);
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap();
-        let t = pool
-            .install(|| job.train_tile(tile, range.clone(), surrogate.as_deref()))
-            .unwrap();
+        let t = train_on_threads(&job, tile, &range, surrogate.as_deref(), threads);
         (t, range.len() as u32)
     };
     let samples = |t: &TrainTile| match &t.cells {
