@@ -5,7 +5,7 @@
 #   cargo build --release -p cli && docs/bench/run_benches.sh
 #
 # Environment: REF_SECONDS (reference render budget, default 45), MAX_SECONDS (per-estimator
-# bench budget, default 30), SPP_SERIES (default 32,64,…,512), SCENES (default: colour-lamp many-lights veach-mis envmap),
+# bench budget, default 30), SPP_SERIES (default 32,64,…,512), SCENES (default: colour-lamp many-lights veach-mis envmap cornell-box),
 # DEPTHS (default: 2 5), ESTIMATORS (default: path,cms), SEEDS (renders per point, default 3:
 # the error is then the seed-to-seed variance of one render, free of the reference's own noise;
 # the reference only normalises).
@@ -16,7 +16,7 @@ REF_SECONDS=${REF_SECONDS:-45}
 MAX_SECONDS=${MAX_SECONDS:-30}
 # cms trains on its first 16 spp: start the series where the CV is applied.
 SPP_SERIES=${SPP_SERIES:-32,64,128,256,512}
-SCENES=${SCENES:-"colour-lamp many-lights veach-mis envmap"}
+SCENES=${SCENES:-"colour-lamp many-lights veach-mis envmap cornell-box"}
 DEPTHS=${DEPTHS:-"2 5"}
 ESTIMATORS=${ESTIMATORS:-path,cms}
 SEEDS=${SEEDS:-3}
@@ -32,4 +32,14 @@ for scene in $SCENES; do
       --reference "$ref" --max-seconds "$MAX_SECONDS" --spp-series "$SPP_SERIES" --seeds "$SEEDS" \
       --out "docs/bench/${scene}_d${d}"
   done
+done
+# The shared Mitsuba scenes (MITSUBA_SCENES, default below; empty to skip) at their native
+# 128×128 against the shared references (depth 5 only), into docs/bench/mitsuba-<name>_d5.
+SHARED=${SHARED:-../shared/scenes-mitsuba}
+MITSUBA_SCENES=${MITSUBA_SCENES-"cbox manylights-4 bsdf-spheres/roughplastic-ggx bsdf-spheres/roughconductor-ggx"}
+for s in $MITSUBA_SCENES; do
+  name=$(basename "$s")
+  "$BIN" bench "$SHARED/$s/scene.xml" --estimators "$ESTIMATORS" --max-depth 5 \
+    --reference "$SHARED/refs/${name}_d5.exr" --max-seconds 60 --spp-series 128,256,512 \
+    --seeds "$SEEDS" --out "docs/bench/mitsuba-${name}_d5"
 done
