@@ -71,8 +71,9 @@
 //! `[0, s)`, `[s, s+T)`, `[s+T, spp)` of the job's sampler, all kept in the image.
 //! Training tiles are fixed ([`TRAIN_TILE`] pixels, independent of
 //! [`RenderOptions::tile_size`]) and their cell accumulators are merged in row-major tile
-//! order (a tile's own table: its bands' samples added in band order, [`BAND_ROWS`]); every
-//! pixel sums its samples in index order; so the same job and seed give
+//! order (a tile's own table: its bands' samples added in band order, [`BAND_ROWS`], first
+//! for its [`TRAIN_PROBE_SPP`] probe samples, then for the rest unless the probe stopped it);
+//! every pixel sums its samples in index order; so the same job and seed give
 //! bitwise-identical images for any thread count and tile size.
 //!
 //! # Grid
@@ -1021,16 +1022,15 @@ const PROBE_MARGIN: f64 = 0.5;
 
 /// Training samples per pixel a training tile records before it checks its own table
 /// against the job's `min_image_gain` / `min_fit_gain` (the table-wide switch of
-/// [`AccumulatorTable::solve`], applied to the tile's cells alone, with the minima lowered by
-/// [`probe_policy`]). Below either, the tile
-/// traces the rest of its training samples as `path` and reports only these: on a scene
-/// whose fits cannot pay, the whole job would fall back at the train barrier anyway, and
-/// recording costs +25…+45 % per training sample (most of such a job's overhead). The
-/// decision depends only on the tile's own samples (fixed by the job), so it is the same on
-/// every worker and for any thread count. A tile of a moments estimator (`cms`,
-/// `optimal_mis`) is always recorded in these two passes, each pixel adding all its samples
-/// in index order, so the bits do not depend on whether a minimum is set (with none, no probe
-/// decision is made).
+/// [`AccumulatorTable::solve`], applied to the tile's cells alone, with each minimum lowered
+/// by half its size). Below either, the tile traces the rest of its training samples as
+/// `path` and reports only these: on a scene whose fits cannot pay, the whole job would fall
+/// back at the train barrier anyway, and recording costs +25…+45 % per training sample (most
+/// of such a job's overhead). The decision depends only on the tile's own samples (fixed by
+/// the job), so it is the same on every worker and for any thread count. A tile of a moments
+/// estimator (`cms`, `optimal_mis`) with more training samples than these is always recorded
+/// in these two passes, each pixel adding all its samples in index order, so the bits do not
+/// depend on whether a minimum is set (with none, no probe decision is made).
 pub const TRAIN_PROBE_SPP: u32 = 2;
 
 /// What a render-phase tile produced: film, rays, and per pixel the summed CV term
