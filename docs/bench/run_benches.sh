@@ -5,7 +5,7 @@
 #   cargo build --release -p cli && docs/bench/run_benches.sh
 #
 # Environment: REF_SECONDS (reference render budget, default 45), MAX_SECONDS (per-estimator
-# bench budget, default 30), SPP_SERIES (default 32,64,…,512), SCENES (default: colour-lamp many-lights veach-mis envmap cornell-box),
+# bench budget, default 30), SPP_SERIES (default 32,64,…,512), SCENES (default: colour-lamp many-lights veach-mis envmap cornell-box; empty for none),
 # DEPTHS (default: 2 5), ESTIMATORS (default: path,cms), SEEDS (renders per point, default 3:
 # the error is then the seed-to-seed variance of one render, free of the reference's own noise;
 # the reference only normalises).
@@ -16,7 +16,7 @@ REF_SECONDS=${REF_SECONDS:-45}
 MAX_SECONDS=${MAX_SECONDS:-30}
 # cms trains on its first 16 spp: start the series where the CV is applied.
 SPP_SERIES=${SPP_SERIES:-32,64,128,256,512}
-SCENES=${SCENES:-"colour-lamp many-lights veach-mis envmap cornell-box"}
+SCENES=${SCENES-"colour-lamp many-lights veach-mis envmap cornell-box"}
 DEPTHS=${DEPTHS:-"2 5"}
 ESTIMATORS=${ESTIMATORS:-path,cms}
 SEEDS=${SEEDS:-3}
