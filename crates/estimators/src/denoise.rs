@@ -633,188 +633,84 @@ mod tests {
         assert!(out.iter().zip(&c).all(|(o, i)| (o - i).abs() < 1e-6));
     }
 
-    /// The filter as it was written before it was vectorised: pixel by pixel, interleaved
-    /// channels, a skipped tap `continue`d. The definition the vectorised filter must match
-    /// bit for bit.
-    mod reference {
-        use super::super::{AtrousOptions, KERNEL, MAX_EXPONENT, exp_neg};
-        pub(super) fn filter_levels<const C: usize>(
-            color: &[f32],
-            variance: &[f32],
-            ctx: &RefLevel,
-            iterations: u32,
-            threads: usize,
-        ) -> Vec<f32> {
-            let (width, height) = (ctx.width, ctx.height);
-            let n = width * height;
-            let mut cur = color.to_vec();
-            let mut var = variance.to_vec();
-            let mut next = vec![0.0f32; C * n];
-            let mut next_var = vec![0.0f32; n];
-            let mut lum = vec![0.0f32; n];
-            if n == 0 {
-                return cur;
-            }
-            let rows_per_band = height.div_ceil(threads.max(1)).max(1);
-            for it in 0..iterations.min(16) {
-                let step = 1usize << it;
-                // Channel means of this level, once per pixel rather than once per tap.
-                for (l, c) in lum.iter_mut().zip(cur.chunks_exact(C)) {
-                    *l = if C == 1 {
+    /// The filter as it was written before it was vectorised, single-threaded: pixel by
+    /// pixel on interleaved channels, a tap outside the image or above the exponent cap
+    /// `continue`d. The definition the vectorised filter must match bit for bit.
+    fn reference<const C: usize>(
+        color: &[f32],
+        variance: &[f32],
+        ctx: &Level,
+        iterations: u32,
+    ) -> Vec<f32> {
+        let (w, h) = (ctx.width, ctx.height);
+        let (mut cur, mut var) = (color.to_vec(), variance.to_vec());
+        let g = |q: usize| -> [f32; 6] { std::array::from_fn(|k| ctx.guide[k][q]) };
+        for it in 0..iterations.min(16) {
+            let step = 1usize << it;
+            let lum: Vec<f32> = cur
+                .chunks_exact(C)
+                .map(|c| {
+                    if C == 1 {
                         c[0]
                     } else {
                         c.iter().sum::<f32>() / C as f32
-                    };
-                }
-                let (cur_ref, var_ref) = (&cur, &var);
-                let lum_ref = &lum;
-                let bands = next
-                    .chunks_mut(C * width * rows_per_band)
-                    .zip(next_var.chunks_mut(width * rows_per_band))
-                    .enumerate();
-                if threads > 1 {
-                    std::thread::scope(|s| {
-                        for (b, (out, out_var)) in bands {
-                            s.spawn(move || {
-                                let y0 = b * rows_per_band;
-                                ctx.filter_rows::<C>(
-                                    y0, step, cur_ref, lum_ref, var_ref, out, out_var,
-                                )
-                            });
-                        }
-                    });
-                } else {
-                    for (b, (out, out_var)) in bands {
-                        let y0 = b * rows_per_band;
-                        ctx.filter_rows::<C>(y0, step, cur_ref, lum_ref, var_ref, out, out_var);
                     }
-                }
-                std::mem::swap(&mut cur, &mut next);
-                std::mem::swap(&mut var, &mut next_var);
-            }
-            cur
-        }
-
-        pub(super) struct RefLevel {
-            guide: Vec<[f32; 6]>,
-            inv_sa2: f32,
-            inv_sn: f32,
-            sigma_color: f32,
-            width: usize,
-            height: usize,
-        }
-
-        impl RefLevel {
-            pub(super) fn new(
-                albedo: Option<&[f32]>,
-                normal: Option<&[f32]>,
-                options: &AtrousOptions,
-                width: usize,
-                height: usize,
-            ) -> Self {
-                let n = width * height;
-                let mut guide = vec![[0.0f32; 6]; n];
-                for (p, g) in guide.iter_mut().enumerate() {
-                    if let Some(a) = albedo {
-                        g[..3].copy_from_slice(&a[3 * p..3 * p + 3]);
-                    }
-                    if let Some(nb) = normal {
-                        g[3..].copy_from_slice(&nb[3 * p..3 * p + 3]);
-                    }
-                }
-                let on = |sigma: f32, present: bool| present && sigma > 0.0;
-                Self {
-                    guide,
-                    inv_sa2: if on(options.sigma_albedo, albedo.is_some()) {
-                        1.0 / (options.sigma_albedo * options.sigma_albedo)
-                    } else {
-                        0.0
-                    },
-                    inv_sn: if on(options.sigma_normal, normal.is_some()) {
-                        1.0 / options.sigma_normal
-                    } else {
-                        0.0
-                    },
-                    sigma_color: options.sigma_color.max(0.0),
-                    width,
-                    height,
-                }
-            }
-
-            #[allow(clippy::too_many_arguments)]
-            fn filter_rows<const C: usize>(
-                &self,
-                y0: usize,
-                step: usize,
-                cur: &[f32],
-                lum: &[f32],
-                var: &[f32],
-                out: &mut [f32],
-                out_var: &mut [f32],
-            ) {
-                let (width, height) = (self.width, self.height);
-                let (sa, sn) = (self.inv_sa2, self.inv_sn);
-                for (r, (row, row_var)) in out
-                    .chunks_mut(C * width)
-                    .zip(out_var.chunks_mut(width))
-                    .enumerate()
-                {
-                    let y = y0 + r;
-                    // Kernel rows inside the image.
-                    let taps_y = (0..5usize).filter_map(|j| {
-                        let yy = (y + j * step).checked_sub(2 * step)?;
-                        (yy < height).then_some((KERNEL[j], yy * width))
-                    });
-                    let taps_y: Vec<(f32, usize)> = taps_y.collect();
-                    for x in 0..width {
-                        let p = y * width + x;
-                        let lp = lum[p];
-                        let inv_den = 1.0 / (self.sigma_color * var[p].sqrt() + 1e-4);
-                        let gp = self.guide[p];
-                        let (i_lo, i_hi) = (
-                            (2 * step).saturating_sub(x).div_ceil(step),
-                            ((width - 1 - x) / step).min(2) + 3,
-                        );
-                        let (mut ws, mut wv) = (0.0f32, 0.0f32);
-                        let mut acc = [0.0f32; C];
-                        for &(kj, row_q) in &taps_y {
-                            for (i, ki) in KERNEL.iter().enumerate().take(i_hi).skip(i_lo) {
-                                let q = row_q + x + i * step - 2 * step;
-                                let g = &self.guide[q];
-                                let (mut d2, mut dot) = (0.0f32, 0.0f32);
-                                for c in 0..3 {
-                                    let d = gp[c] - g[c];
-                                    d2 += d * d;
-                                    dot += gp[3 + c] * g[3 + c];
+                })
+                .collect();
+            let mut next = vec![0.0f32; C * w * h];
+            let mut next_var = vec![0.0f32; w * h];
+            for y in 0..h {
+                for x in 0..w {
+                    let p = y * w + x;
+                    let inv_den = 1.0 / (ctx.sigma_color * var[p].sqrt() + 1e-4);
+                    let gp = g(p);
+                    let (mut ws, mut wv, mut acc) = (0.0f32, 0.0f32, [0.0f32; C]);
+                    for (j, kj) in KERNEL.iter().enumerate() {
+                        for (i, ki) in KERNEL.iter().enumerate() {
+                            let (Some(yy), Some(xx)) = (
+                                (y + j * step).checked_sub(2 * step),
+                                (x + i * step).checked_sub(2 * step),
+                            ) else {
+                                continue;
+                            };
+                            if yy >= h || xx >= w {
+                                continue;
+                            }
+                            let q = yy * w + xx;
+                            let gq = g(q);
+                            let (mut d2, mut dot) = (0.0f32, 0.0f32);
+                            for c in 0..3 {
+                                let d = gp[c] - gq[c];
+                                d2 += d * d;
+                                dot += gp[3 + c] * gq[3 + c];
+                            }
+                            let mut e = (lum[p] - lum[q]).abs() * inv_den
+                                + d2 * ctx.inv_sa2
+                                + (1.0 - dot).max(0.0) * ctx.inv_sn;
+                            if !(e < MAX_EXPONENT) {
+                                if q != p {
+                                    continue;
                                 }
-                                let mut e = (lp - lum[q]).abs() * inv_den
-                                    + d2 * sa
-                                    + (1.0 - dot).max(0.0) * sn;
-                                if !(e < MAX_EXPONENT) {
-                                    if q != p {
-                                        continue;
-                                    }
-                                    // The centre always counts (its exponent is finite: no colour
-                                    // term), so `ws > 0` whatever the bandwidths.
-                                    e = MAX_EXPONENT;
-                                }
-                                let w = kj * ki * exp_neg(e);
-                                ws += w;
-                                wv += w * w * var[q];
-                                for (a, v) in acc.iter_mut().zip(&cur[C * q..C * q + C]) {
-                                    *a += w * v;
-                                }
+                                e = MAX_EXPONENT;
+                            }
+                            let wt = kj * ki * exp_neg(e);
+                            ws += wt;
+                            wv += wt * wt * var[q];
+                            for (a, v) in acc.iter_mut().zip(&cur[C * q..C * q + C]) {
+                                *a += wt * v;
                             }
                         }
-                        // The centre weight is at least 36/256·e^-24 > 0, so `ws > 0`.
-                        for (o, a) in row[C * x..C * x + C].iter_mut().zip(acc) {
-                            *o = a / ws;
-                        }
-                        row_var[x] = wv / (ws * ws);
                     }
+                    for (o, a) in next[C * p..C * p + C].iter_mut().zip(acc) {
+                        *o = a / ws;
+                    }
+                    next_var[p] = wv / (ws * ws);
                 }
             }
+            cur = next;
+            var = next_var;
         }
+        cur
     }
 
     /// The vectorised filter gives the per-pixel definition's bits: RGB and mono, with and
@@ -858,31 +754,18 @@ mod tests {
                         (None, None)
                     };
                     let ctx = Level::new(ga, gn, &opts, w, h);
-                    let old = reference::RefLevel::new(ga, gn, &opts, w, h);
                     let bits = |x: Vec<f32>| x.into_iter().map(f32::to_bits).collect::<Vec<_>>();
+                    let want_rgb = bits(reference::<3>(&c, &v, &ctx, opts.iterations));
+                    let want_mono = bits(reference::<1>(&mono, &v, &ctx, opts.iterations));
                     for t in [1, 3] {
-                        let want = bits(reference::filter_levels::<3>(
-                            &c,
-                            &v,
-                            &old,
-                            opts.iterations,
-                            1,
-                        ));
                         let got = bits(filter_levels::<3>(&c, &v, &ctx, opts.iterations, t));
                         assert!(
-                            got == want,
+                            got == want_rgb,
                             "rgb {w}x{h} {opts:?} guides {guides} threads {t}"
                         );
-                        let want = bits(reference::filter_levels::<1>(
-                            &mono,
-                            &v,
-                            &old,
-                            opts.iterations,
-                            1,
-                        ));
                         let got = bits(filter_levels::<1>(&mono, &v, &ctx, opts.iterations, t));
                         assert!(
-                            got == want,
+                            got == want_mono,
                             "mono {w}x{h} {opts:?} guides {guides} threads {t}"
                         );
                     }
