@@ -1354,6 +1354,22 @@ impl<'a> CvJob<'a> {
         samples: Range<u32>,
         table: &CoefficientTable,
     ) -> RenderTile {
+        // No coefficient anywhere (a switched-off job): what [`Banded::run`] would trace is
+        // `path`'s pixel samples, in the same order; `path`'s own driver traces them
+        // without the bands and their per-band films (the same bits: a band's pixels are
+        // copied into the tile's film).
+        if self.ctx.base == self.ctx.st.mis
+            && table.coeffs.is_empty()
+            && let Ok((film, rays)) =
+                crate::tile::render_tile_counted(self.ctx.rs, &self.ctx.st, tile, samples.clone())
+        {
+            let n = tile.pixel_count() as usize;
+            return RenderTile {
+                out: TileFilm { film, rays },
+                cv_sum: vec![[0.0; 3]; n],
+                cell_id: vec![-1.0; n],
+            };
+        }
         let input = PhaseInput {
             kind: PhaseKind::Apply,
             table: Some(table),
@@ -2113,6 +2129,86 @@ mod tests {
         assert!(whole.values().map(|a| a.samples()).sum::<u64>() > 10_000);
         // The spill really happened: some sums were associated differently.
         assert!(differs, "no sum changed: the log never spilled");
+    }
+
+    /// A render tile without coefficients (a switched-off job) is traced by `path`'s own
+    /// driver: the same film, to the bit, and the same rays as the banded CV driver gives,
+    /// on 1 and 3 threads and for a tile whose height is not a multiple of the bands'.
+    #[test]
+    fn a_tile_without_coefficients_has_the_banded_drivers_bits() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../scenes/veach-mis/scene.json");
+        let mut scene = scene::load_file(&path).expect("scene loads").scene;
+        scene.film.width = 40;
+        scene.film.height = 29;
+        let st = RenderSettings {
+            spp: 24,
+            seed: 3,
+            max_depth: 5,
+            estimator: Estimator::Cms(super::super::cms::CmsOptions::default()),
+            ..RenderSettings::from_scene(&scene)
+        };
+        let rs = RenderScene::new(&scene, &st).unwrap();
+        let job = CvJob::new(&rs, &st).unwrap().expect("a phased estimator");
+        let table = job.coefficient_table(&BTreeMap::new()).unwrap();
+        assert!(table.coeffs.is_empty());
+        let tile = TileRect {
+            x0: 3,
+            y0: 2,
+            width: 37,
+            height: 27,
+        };
+        let render = job.phases().render.clone();
+        let input = PhaseInput {
+            kind: PhaseKind::Apply,
+            table: Some(&table),
+            surrogate: None,
+        };
+        let banded = Banded::run(&job.ctx, tile, render.clone(), input, None, None);
+        let bits = |f: &Film| {
+            f.pixels
+                .iter()
+                .flat_map(|p| {
+                    p.sum
+                        .iter()
+                        .chain(&p.sum_sq)
+                        .chain(&p.albedo_sum)
+                        .chain(&p.normal_sum)
+                        .map(|v| v.to_bits())
+                        .chain([p.count])
+                        .collect::<Vec<_>>()
+                })
+                .collect::<Vec<u64>>()
+        };
+        for threads in [1, 3] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            let t = pool.install(|| job.render_tile(tile, render.clone(), &table));
+            assert!(bits(&t.out.film) == bits(&banded.film), "{threads} threads");
+            assert_eq!(t.out.film.rejected, banded.film.rejected);
+            assert_eq!(t.out.rays, banded.rays);
+            assert_eq!(t.cv_sum, banded.cv_sum);
+            assert_eq!(
+                t.cell_id.iter().map(|c| c.to_bits()).collect::<Vec<_>>(),
+                banded
+                    .cell_id
+                    .iter()
+                    .map(|c| c.to_bits())
+                    .collect::<Vec<_>>()
+            );
+            assert_eq!(
+                (
+                    t.out.film.x0,
+                    t.out.film.y0,
+                    t.out.film.width,
+                    t.out.film.height
+                ),
+                (tile.x0, tile.y0, tile.width, tile.height)
+            );
+        }
+        assert!(banded.rays > 0);
     }
 
     #[test]
