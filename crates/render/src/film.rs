@@ -168,6 +168,23 @@ impl Film {
         self.rejected += other.rejected;
     }
 
+    /// Every pixel's sums (radiance, its square, albedo, normal) as `f64` bit patterns and
+    /// its sample count, pixel by pixel: what "the same bits" compares.
+    pub fn to_bits(&self) -> Vec<u64> {
+        self.pixels
+            .iter()
+            .flat_map(|p| {
+                p.sum
+                    .iter()
+                    .chain(&p.sum_sq)
+                    .chain(&p.albedo_sum)
+                    .chain(&p.normal_sum)
+                    .map(|v| v.to_bits())
+                    .chain([p.count])
+            })
+            .collect()
+    }
+
     /// Total number of samples in the film.
     pub fn sample_count(&self) -> u64 {
         self.pixels.iter().map(|p| p.count).sum()

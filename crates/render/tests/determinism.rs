@@ -45,18 +45,7 @@ fn test_scene() -> scene::Scene {
 }
 
 fn bits(f: &Film) -> Vec<u64> {
-    f.pixels
-        .iter()
-        .flat_map(|p| {
-            p.sum
-                .iter()
-                .chain(&p.sum_sq)
-                .chain(&p.albedo_sum)
-                .chain(&p.normal_sum)
-                .map(|v| v.to_bits())
-                .chain([p.count])
-        })
-        .collect()
+    f.to_bits()
 }
 
 #[test]

@@ -2165,28 +2165,16 @@ mod tests {
             surrogate: None,
         };
         let banded = Banded::run(&job.ctx, tile, render.clone(), input, None, None);
-        let bits = |f: &Film| {
-            f.pixels
-                .iter()
-                .flat_map(|p| {
-                    p.sum
-                        .iter()
-                        .chain(&p.sum_sq)
-                        .chain(&p.albedo_sum)
-                        .chain(&p.normal_sum)
-                        .map(|v| v.to_bits())
-                        .chain([p.count])
-                        .collect::<Vec<_>>()
-                })
-                .collect::<Vec<u64>>()
-        };
         for threads in [1, 3] {
             let pool = rayon::ThreadPoolBuilder::new()
                 .num_threads(threads)
                 .build()
                 .unwrap();
             let t = pool.install(|| job.render_tile(tile, render.clone(), &table));
-            assert!(bits(&t.out.film) == bits(&banded.film), "{threads} threads");
+            assert!(
+                t.out.film.to_bits() == banded.film.to_bits(),
+                "{threads} threads"
+            );
             assert_eq!(t.out.film.rejected, banded.film.rejected);
             assert_eq!(t.out.rays, banded.rays);
             assert_eq!(t.cv_sum, banded.cv_sum);
