@@ -2065,21 +2065,26 @@ mod tests {
     /// takes the band's cells and the rest of its log. Nothing is lost or counted twice (every
     /// cell's sample count is exact), the sums agree with the unspilled ones to rounding, and
     /// the spilled table's bits do not depend on the thread count.
-    #[test]
-    fn a_spilled_training_log_keeps_every_sample() {
+    /// `scenes/<name>` at `width × height`, with `cms` (defaults) at 24 spp, depth 5.
+    fn cms_scene(name: &str, width: u32, height: u32, seed: u64) -> (RenderScene, RenderSettings) {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("../../scenes/many-lights/scene.json");
+            .join(format!("../../scenes/{name}/scene.json"));
         let mut scene = scene::load_file(&path).expect("scene loads").scene;
-        scene.film.width = 32;
-        scene.film.height = 32;
+        scene.film.width = width;
+        scene.film.height = height;
         let st = RenderSettings {
             spp: 24,
-            seed: 5,
+            seed,
             max_depth: 5,
             estimator: Estimator::Cms(super::super::cms::CmsOptions::default()),
             ..RenderSettings::from_scene(&scene)
         };
-        let rs = RenderScene::new(&scene, &st).unwrap();
+        (RenderScene::new(&scene, &st).unwrap(), st)
+    }
+
+    #[test]
+    fn a_spilled_training_log_keeps_every_sample() {
+        let (rs, st) = cms_scene("many-lights", 32, 32, 5);
         let mut job = CvJob::new(&rs, &st).unwrap().expect("a phased estimator");
         let tile = TileRect {
             x0: 0,
@@ -2136,19 +2141,7 @@ mod tests {
     /// on 1 and 3 threads and for a tile whose height is not a multiple of the bands'.
     #[test]
     fn a_tile_without_coefficients_has_the_banded_drivers_bits() {
-        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("../../scenes/veach-mis/scene.json");
-        let mut scene = scene::load_file(&path).expect("scene loads").scene;
-        scene.film.width = 40;
-        scene.film.height = 29;
-        let st = RenderSettings {
-            spp: 24,
-            seed: 3,
-            max_depth: 5,
-            estimator: Estimator::Cms(super::super::cms::CmsOptions::default()),
-            ..RenderSettings::from_scene(&scene)
-        };
-        let rs = RenderScene::new(&scene, &st).unwrap();
+        let (rs, st) = cms_scene("veach-mis", 40, 29, 3);
         let job = CvJob::new(&rs, &st).unwrap().expect("a phased estimator");
         let table = job.coefficient_table(&BTreeMap::new()).unwrap();
         assert!(table.coeffs.is_empty());
