@@ -1354,12 +1354,11 @@ impl<'a> CvJob<'a> {
         samples: Range<u32>,
         table: &CoefficientTable,
     ) -> RenderTile {
-        // No coefficient anywhere (a switched-off job): what [`Banded::run`] would trace is
-        // `path`'s pixel samples, in the same order; `path`'s own driver traces them
-        // without the bands and their per-band films (the same bits: a band's pixels are
-        // copied into the tile's film).
-        if self.ctx.base == self.ctx.st.mis
-            && table.coeffs.is_empty()
+        // Nothing to control (a switched-off job, or no controllable vertex): what
+        // [`Banded::run`] would trace is `path`'s pixel samples ([`traces_as_path`]), in the
+        // same order; `path`'s own driver traces them without the bands and their per-band
+        // films (the same bits: a band's pixels are copied into the tile's film).
+        if traces_as_path(&self.ctx, PhaseKind::Apply, Some(table))
             && let Ok((film, rays)) =
                 crate::tile::render_tile_counted(self.ctx.rs, &self.ctx.st, tile, samples.clone())
         {
@@ -1586,6 +1585,22 @@ impl Banded {
     }
 }
 
+/// Whether a tile of phase `kind` (with `table` in the render phase) traces `path`'s own pixel
+/// samples: where the vertex policy would change nothing — no sample is controlled or trained
+/// on, and the base estimator is the job's `path` — the same estimator without the policy's
+/// per-vertex work and the extra rays a CV needs [Hua §8] (the `cell` layer then stays −1).
+/// Farm workers run the same code: same bits.
+fn traces_as_path(ctx: &CvContext<'_>, kind: PhaseKind, table: Option<&CoefficientTable>) -> bool {
+    ctx.base == ctx.st.mis
+        && match kind {
+            PhaseKind::Plain => true,
+            PhaseKind::Train => !ctx.controls_any_vertex(),
+            PhaseKind::Apply => {
+                !ctx.controls_any_vertex() || table.is_none_or(|t| t.coeffs.is_empty())
+            }
+        }
+}
+
 /// Training tables merged in the given (canonical) order: the first is the start, each
 /// further one is merged into it; no table gives the empty table of the job's kind.
 fn merge_in_order(
@@ -1691,18 +1706,7 @@ fn run_tile(
     let mut cell_id = vec![-1.0f32; if kind == PhaseKind::Apply { n } else { 0 }];
     let mut rays = 0u64;
     let mut i = 0usize;
-    // Where the vertex policy would change nothing — no sample is controlled or trained on,
-    // and the base estimator is the job's `path` — trace with `path` itself: the same
-    // estimator without the policy's per-vertex work and the extra rays a CV needs [Hua §8].
-    // (The `cell` layer then stays −1.) Farm workers run the same code: same bits.
-    let plain_path = ctx.base == st.mis
-        && match kind {
-            PhaseKind::Plain => true,
-            PhaseKind::Train => !ctx.controls_any_vertex(),
-            PhaseKind::Apply => {
-                !ctx.controls_any_vertex() || table.is_none_or(|t| t.coeffs.is_empty())
-            }
-        };
+    let plain_path = traces_as_path(ctx, kind, table);
     for y in tile.y0..tile.y0 + tile.height {
         for x in tile.x0..tile.x0 + tile.width {
             let pixel = y * rs.width + x;
@@ -2061,10 +2065,6 @@ mod tests {
         assert_eq!(image_variance(&one, 4, None), 0.0);
     }
 
-    /// A band whose log fills up adds it to its own cells and goes on logging; the tile then
-    /// takes the band's cells and the rest of its log. Nothing is lost or counted twice (every
-    /// cell's sample count is exact), the sums agree with the unspilled ones to rounding, and
-    /// the spilled table's bits do not depend on the thread count.
     /// `scenes/<name>` at `width × height`, with `cms` (defaults) at 24 spp, depth 5.
     fn cms_scene(name: &str, width: u32, height: u32, seed: u64) -> (RenderScene, RenderSettings) {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -2082,6 +2082,10 @@ mod tests {
         (RenderScene::new(&scene, &st).unwrap(), st)
     }
 
+    /// A band whose log fills up adds it to its own cells and goes on logging; the tile then
+    /// takes the band's cells and the rest of its log. Nothing is lost or counted twice (every
+    /// cell's sample count is exact), the sums agree with the unspilled ones to rounding, and
+    /// the spilled table's bits do not depend on the thread count.
     #[test]
     fn a_spilled_training_log_keeps_every_sample() {
         let (rs, st) = cms_scene("many-lights", 32, 32, 5);
