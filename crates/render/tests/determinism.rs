@@ -5,9 +5,7 @@ mod common;
 
 use common::*;
 use glam::Vec3;
-use render::{
-    Film, RenderOptions, RenderScene, RenderSettings, TileRect, render_image, render_tile,
-};
+use render::{RenderOptions, RenderScene, RenderSettings, TileRect, render_image, render_tile};
 
 fn test_scene() -> scene::Scene {
     let mut s = empty_scene(
@@ -44,10 +42,6 @@ fn test_scene() -> scene::Scene {
     s
 }
 
-fn bits(f: &Film) -> Vec<u64> {
-    f.to_bits()
-}
-
 #[test]
 fn film_is_bitwise_identical_across_tile_sizes_and_thread_counts() {
     let s = test_scene();
@@ -59,25 +53,24 @@ fn film_is_bitwise_identical_across_tile_sizes_and_thread_counts() {
         ..RenderSettings::from_scene(&s)
     };
     let rs = RenderScene::new(&s, &st).unwrap();
-    let reference = bits(
-        &render_image(
-            &rs,
-            &st,
-            &RenderOptions {
-                tile_size: 8,
-                threads: 1,
-            },
-            &|_, _| {},
-        )
-        .unwrap()
-        .0,
-    );
+    let reference = render_image(
+        &rs,
+        &st,
+        &RenderOptions {
+            tile_size: 8,
+            threads: 1,
+        },
+        &|_, _| {},
+    )
+    .unwrap()
+    .0
+    .to_bits();
     for (tile_size, threads) in [(8, 2), (16, 1), (16, 2), (64, 1), (64, 2)] {
         let film = render_image(&rs, &st, &RenderOptions { tile_size, threads }, &|_, _| {})
             .unwrap()
             .0;
         assert!(
-            bits(&film) == reference,
+            film.to_bits() == reference,
             "tile {tile_size}, threads {threads} differ"
         );
     }
@@ -86,7 +79,7 @@ fn film_is_bitwise_identical_across_tile_sizes_and_thread_counts() {
     let film = render_image(&rs, &other, &RenderOptions::default(), &|_, _| {})
         .unwrap()
         .0;
-    assert!(bits(&film) != reference);
+    assert!(film.to_bits() != reference);
 }
 
 #[test]
