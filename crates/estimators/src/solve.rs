@@ -122,6 +122,10 @@ pub enum FallbackReason {
     /// variance than [`SolvePolicy::min_fit_gain`] (a decision for the table, not for this
     /// cell).
     LowFitGain,
+    /// The cell's training samples predict that its coefficients would not reduce the
+    /// weighted variance of the estimates they control (`per_light_cv`, whose coefficients
+    /// are not fitted: [`crate::perlight::MeanContributionAccumulator::prediction`]).
+    NoReduction,
 }
 
 /// Outcome of a cell solve.
@@ -762,7 +766,7 @@ pub const COEFFICIENTS_MAGIC: [u8; 4] = *b"CVCO";
 /// Encoding version of [`CellCoefficients`].
 pub const COEFFICIENTS_VERSION: u16 = 1;
 
-const FALLBACK_CODES: [FallbackReason; 9] = [
+const FALLBACK_CODES: [FallbackReason; 10] = [
     FallbackReason::Empty,
     FallbackReason::TooFewSamples,
     FallbackReason::TooFewEffectiveSamples,
@@ -772,6 +776,7 @@ const FALLBACK_CODES: [FallbackReason; 9] = [
     FallbackReason::NonFinite,
     FallbackReason::LowImageGain,
     FallbackReason::LowFitGain,
+    FallbackReason::NoReduction,
 ];
 
 impl CellCoefficients {

@@ -236,6 +236,16 @@ impl Default for CmsOptions {
 /// | `training_spp` | u32 | 16 | samples per pixel of the training phase (kept in the image) |
 /// | `grid_resolution` | `[nx, ny, nz]` \| null | null | cells per axis; null = adaptive (≈ 16×16 pixels per cell) |
 /// | `max_light_components` | u32 | 1024 | more emitters than this are clustered by spatial proximity |
+/// | `relative` | bool | `true` | weigh each training vertex by `1/(surrogate + 0.01)²` [Hua eq. 25] (times its squared throughput [Hua eq. 29]) when predicting whether a cell's coefficients reduce its variance ([`crate::perlight`]); the coefficients themselves stay the cell means [Hua §7.2] |
+/// | `surrogate_spp` | u32 | 1 | samples per pixel of the surrogate image (only with `relative`; kept in the image) |
+/// | `min_image_gain` | f64 \| null | `3e-4` | as `cms`'s: the cells' coefficients are applied only when the cells that keep them are predicted to remove at least this fraction of the image's per-sample (relative) variance; below it every cell falls back and the render phase is traced as `path`. null always applies them |
+/// | `min_fit_gain` | f64 \| null | `0.2` | as `cms`'s, over the NEE estimates the CV controls: below it every cell falls back. null always applies them |
+///
+/// A cell keeps its coefficients only where its own training vertices predict they reduce
+/// its weighted variance ([`crate::solve::FallbackReason::NoReduction`] otherwise): the
+/// cell mean of a light's contribution, subtracted at every vertex of the cell, adds
+/// variance at its dark pixels' vertices (`docs/bench/README.md`: 0.11× on veach-mis
+/// without this).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct PerLightCvOptions {
@@ -245,6 +255,14 @@ pub struct PerLightCvOptions {
     pub grid_resolution: Option<[u32; 3]>,
     /// Clustering threshold for emitters.
     pub max_light_components: u32,
+    /// Weigh training vertices by the surrogate [Hua eq. 25].
+    pub relative: bool,
+    /// Surrogate samples per pixel (with `relative`).
+    pub surrogate_spp: u32,
+    /// Smallest predicted image gain for the coefficients to be applied; `None` always.
+    pub min_image_gain: Option<f64>,
+    /// Smallest predicted fit gain for the coefficients to be applied; `None` always.
+    pub min_fit_gain: Option<f64>,
 }
 
 impl Default for PerLightCvOptions {
@@ -253,6 +271,10 @@ impl Default for PerLightCvOptions {
             training_spp: 16,
             grid_resolution: None,
             max_light_components: 1024,
+            relative: true,
+            surrogate_spp: 1,
+            min_image_gain: Some(DEFAULT_MIN_IMAGE_GAIN),
+            min_fit_gain: Some(DEFAULT_MIN_FIT_GAIN),
         }
     }
 }
@@ -322,7 +344,14 @@ impl PhasedEstimator {
                 };
                 PhaseSamples::split(spp, s, o.training_spp)
             }
-            Self::PerLightCv(o) => PhaseSamples::split(spp, 0, o.training_spp),
+            Self::PerLightCv(o) => {
+                let s = if o.relative {
+                    o.surrogate_spp.max(1)
+                } else {
+                    0
+                };
+                PhaseSamples::split(spp, s, o.training_spp)
+            }
             Self::OptimalMis(o) => PhaseSamples::split(spp, 0, o.training_spp),
         }
     }
@@ -338,7 +367,11 @@ impl PhasedEstimator {
 
     /// Whether training samples are weighted by a surrogate image [Hua eq. 25].
     pub fn relative(&self) -> bool {
-        matches!(self, Self::Cms(o) if o.relative)
+        match self {
+            Self::Cms(o) => o.relative,
+            Self::PerLightCv(o) => o.relative,
+            Self::OptimalMis(_) => false,
+        }
     }
 
     /// Shallowest vertex depth the CV is trained and applied at (`cms`'s `min_depth`; 0 for
@@ -370,11 +403,13 @@ impl PhasedEstimator {
         {
             return Err(("ridge", "must be finite and ≥ 0"));
         }
-        if let Self::Cms(o) = self {
-            for (name, gain) in [
-                ("min_image_gain", o.min_image_gain),
-                ("min_fit_gain", o.min_fit_gain),
-            ] {
+        let gains = match self {
+            Self::Cms(o) => Some((o.min_image_gain, o.min_fit_gain)),
+            Self::PerLightCv(o) => Some((o.min_image_gain, o.min_fit_gain)),
+            Self::OptimalMis(_) => None,
+        };
+        if let Some((image, fit)) = gains {
+            for (name, gain) in [("min_image_gain", image), ("min_fit_gain", fit)] {
                 if gain.is_some_and(|g| !g.is_finite()) {
                     return Err((name, "must be finite (or null to always apply the fits)"));
                 }
@@ -406,7 +441,11 @@ impl PhasedEstimator {
                 min_samples: o.min_samples,
                 ..crate::solve::SolvePolicy::default()
             },
-            Self::PerLightCv(_) => crate::solve::SolvePolicy::default(),
+            Self::PerLightCv(o) => crate::solve::SolvePolicy {
+                min_image_gain: o.min_image_gain.unwrap_or(f64::NEG_INFINITY),
+                min_fit_gain: o.min_fit_gain.unwrap_or(f64::NEG_INFINITY),
+                ..crate::solve::SolvePolicy::default()
+            },
         }
     }
 }

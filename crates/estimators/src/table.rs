@@ -227,8 +227,9 @@ pub enum AccumulatorTable {
     /// unknown (a version-1 table, or a merge with one); then no
     /// [`SolvePolicy::min_image_gain`] decision is made.
     Moments(BTreeMap<u64, CellAccumulator>, Option<f64>),
-    /// [`MeanContributionAccumulator`] records (`per_light_cv`).
-    Mean(BTreeMap<u64, MeanContributionAccumulator>),
+    /// [`MeanContributionAccumulator`] records (`per_light_cv`) and the image variance of
+    /// their training samples, as for [`Self::Moments`].
+    Mean(BTreeMap<u64, MeanContributionAccumulator>, Option<f64>),
 }
 
 /// A solved table: coefficients per cell and how many training samples were rejected.
@@ -322,6 +323,27 @@ impl FitSums {
         sums
     }
 
+    /// The sums of a `per_light_cv` table: each cell's
+    /// [`MeanContributionAccumulator::prediction`] (its reduction where the cell kept its
+    /// coefficients); `None` when a cell has no prediction (a version-1 record).
+    fn of_means(
+        cells: &BTreeMap<u64, MeanContributionAccumulator>,
+        coefficients: &BTreeMap<u64, CellCoefficients>,
+    ) -> Option<Self> {
+        let mut sums = Self {
+            reduction: 0.0,
+            variance: 0.0,
+        };
+        for (k, a) in cells {
+            let p = a.prediction()?;
+            sums.variance += p.variance;
+            if coefficients.get(k).is_some_and(|co| !co.is_fallback()) {
+                sums.reduction += p.reduction;
+            }
+        }
+        Some(sums)
+    }
+
     fn image_gain(&self, image: Option<f64>) -> Option<f64> {
         let image = image.filter(|&v| v > 0.0)?;
         Some(self.reduction / image)
@@ -344,7 +366,7 @@ impl AccumulatorTable {
     pub fn empty(kind: u16) -> Result<Self, CellError> {
         match kind {
             KIND_CELL_ACCUMULATORS => Ok(Self::Moments(BTreeMap::new(), Some(0.0))),
-            KIND_MEAN_CONTRIBUTIONS => Ok(Self::Mean(BTreeMap::new())),
+            KIND_MEAN_CONTRIBUTIONS => Ok(Self::Mean(BTreeMap::new(), Some(0.0))),
             _ => Err(CellError::BadHeader),
         }
     }
@@ -353,7 +375,7 @@ impl AccumulatorTable {
     pub fn kind(&self) -> u16 {
         match self {
             Self::Moments(..) => KIND_CELL_ACCUMULATORS,
-            Self::Mean(_) => KIND_MEAN_CONTRIBUTIONS,
+            Self::Mean(..) => KIND_MEAN_CONTRIBUTIONS,
         }
     }
 
@@ -361,7 +383,7 @@ impl AccumulatorTable {
     pub fn len(&self) -> usize {
         match self {
             Self::Moments(t, _) => t.len(),
-            Self::Mean(t) => t.len(),
+            Self::Mean(t, _) => t.len(),
         }
     }
 
@@ -374,7 +396,7 @@ impl AccumulatorTable {
     pub fn max_key(&self) -> Option<u64> {
         match self {
             Self::Moments(t, _) => t.keys().next_back().copied(),
-            Self::Mean(t) => t.keys().next_back().copied(),
+            Self::Mean(t, _) => t.keys().next_back().copied(),
         }
     }
 
@@ -385,7 +407,10 @@ impl AccumulatorTable {
                 let (t, image) = decode_table_with(bytes)?;
                 Ok(Self::Moments(t, image))
             }
-            KIND_MEAN_CONTRIBUTIONS => Ok(Self::Mean(decode_table(bytes)?)),
+            KIND_MEAN_CONTRIBUTIONS => {
+                let (t, image) = decode_table_with(bytes)?;
+                Ok(Self::Mean(t, image))
+            }
             _ => Err(CellError::BadHeader),
         }
     }
@@ -394,7 +419,7 @@ impl AccumulatorTable {
     pub fn encode(&self) -> Vec<u8> {
         match self {
             Self::Moments(t, image) => encode_table_with(t, *image),
-            Self::Mean(t) => encode_table(t),
+            Self::Mean(t, image) => encode_table_with(t, *image),
         }
     }
 
@@ -407,15 +432,21 @@ impl AccumulatorTable {
                 *ia = add_image_variances(*ia, *ib);
                 Ok(())
             }
-            (Self::Mean(a), Self::Mean(b)) => merge_tables(a, b),
+            (Self::Mean(a, ia), Self::Mean(b, ib)) => {
+                merge_tables(a, b)?;
+                *ia = add_image_variances(*ia, *ib);
+                Ok(())
+            }
             _ => Err(CellError::LayoutMismatch),
         }
     }
 
     /// Solves every cell ([`solve`] for moments [Hua eq. 32–33], the mean contributions for
     /// `per_light_cv` [Hua §7.2]) on up to `threads` threads. Cells are independent, so the
-    /// result does not depend on `threads`. For moments the table's [`predicted_image_gain`]
-    /// (with a known image variance) and [`predicted_fit_gain`] are recorded; when the first
+    /// result does not depend on `threads`. The table's [`predicted_image_gain`] (with a
+    /// known image variance) and [`predicted_fit_gain`] are recorded (for `per_light_cv` the
+    /// same two ratios of its cells' [`MeanContributionAccumulator::prediction`]s, over the
+    /// cells that kept their coefficients); when the first
     /// is below [`SolvePolicy::min_image_gain`] every fitted cell falls back
     /// ([`FallbackReason::LowImageGain`]), else when the second is below
     /// [`SolvePolicy::min_fit_gain`] ([`FallbackReason::LowFitGain`]): the render then pays
@@ -455,44 +486,51 @@ impl AccumulatorTable {
             }
             out
         }
-        match self {
+        let (mut out, sums, image) = match self {
             Self::Moments(t, image) => {
-                let mut out = par(t, threads, |a| (solve(a, policy), a.rejected()));
+                let out = par(t, threads, |a| (solve(a, policy), a.rejected()));
                 let sums = FitSums::of(t, &out.coefficients);
-                out.image_gain = sums.image_gain(*image);
-                out.fit_gain = sums.fit_gain();
-                let below = |gain: Option<f64>, min: f64| {
-                    gain.is_some_and(|g| min > f64::NEG_INFINITY && !(g >= min))
-                };
-                let reason = if below(out.image_gain, policy.min_image_gain) {
-                    Some(FallbackReason::LowImageGain)
-                } else if below(out.fit_gain, policy.min_fit_gain) {
-                    Some(FallbackReason::LowFitGain)
-                } else {
-                    None
-                };
-                out.switched_off = reason;
-                if let Some(reason) = reason {
-                    for co in out.coefficients.values_mut() {
-                        if !co.is_fallback() {
-                            *co = CellCoefficients::fallen_back(
-                                co.layout(),
-                                co.color(),
-                                *co.diagnostics(),
-                                reason,
-                            );
-                        }
-                    }
-                }
-                out
+                (out, Some(sums), *image)
             }
-            Self::Mean(t) => par(t, threads, |a| {
-                (
-                    crate::perlight::mean_contribution_coefficients(a),
-                    a.rejected(),
-                )
-            }),
+            Self::Mean(t, image) => {
+                let out = par(t, threads, |a| {
+                    (
+                        crate::perlight::mean_contribution_coefficients(a),
+                        a.rejected(),
+                    )
+                });
+                let sums = FitSums::of_means(t, &out.coefficients);
+                (out, sums, *image)
+            }
+        };
+        if let Some(sums) = sums {
+            out.image_gain = sums.image_gain(image);
+            out.fit_gain = sums.fit_gain();
         }
+        let below = |gain: Option<f64>, min: f64| {
+            gain.is_some_and(|g| min > f64::NEG_INFINITY && !(g >= min))
+        };
+        let reason = if below(out.image_gain, policy.min_image_gain) {
+            Some(FallbackReason::LowImageGain)
+        } else if below(out.fit_gain, policy.min_fit_gain) {
+            Some(FallbackReason::LowFitGain)
+        } else {
+            None
+        };
+        out.switched_off = reason;
+        if let Some(reason) = reason {
+            for co in out.coefficients.values_mut() {
+                if !co.is_fallback() {
+                    *co = CellCoefficients::fallen_back(
+                        co.layout(),
+                        co.color(),
+                        *co.diagnostics(),
+                        reason,
+                    );
+                }
+            }
+        }
+        out
     }
 }
 

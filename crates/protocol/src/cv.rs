@@ -129,7 +129,7 @@ pub fn layout_signature(table: &AccumulatorTable) -> Result<Option<String>, CvEr
             },
             |(p, o, c)| format!("cells(partitions={p}, overlapping={o}, {c:?})"),
         ),
-        AccumulatorTable::Mean(t) => uniform(
+        AccumulatorTable::Mean(t, _) => uniform(
             t.values(),
             |a| a.lights(),
             |n| format!("mean_contributions(lights={n})"),
@@ -262,15 +262,18 @@ pub fn merge_train(
                 moments.push(m);
                 image = estimators::table::add_image_variances(image, v);
             }
-            AccumulatorTable::Mean(m) => means.push(m),
+            AccumulatorTable::Mean(m, v) => {
+                means.push(m);
+                image = estimators::table::add_image_variances(image, v);
+            }
         }
     }
     Ok(match AccumulatorTable::empty(kind).map_err(decode)? {
         AccumulatorTable::Moments(..) => {
             AccumulatorTable::Moments(merge_maps(&moments, threads).map_err(decode)?, image)
         }
-        AccumulatorTable::Mean(_) => {
-            AccumulatorTable::Mean(merge_maps(&means, threads).map_err(decode)?)
+        AccumulatorTable::Mean(..) => {
+            AccumulatorTable::Mean(merge_maps(&means, threads).map_err(decode)?, image)
         }
     })
 }

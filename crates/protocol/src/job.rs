@@ -113,7 +113,7 @@ pub enum SceneSource {
 /// | `path` | [`PathOptions`] | render |
 /// | `ocv` | [`OcvOptions`] [Fan 2006] | render |
 /// | `cms` | [`CmsOptions`] [Hua 2023] | surrogate (with `relative`), train, render |
-/// | `per_light_cv` | [`PerLightCvOptions`] [Hua §7.2] | train, render |
+/// | `per_light_cv` | [`PerLightCvOptions`] [Hua §7.2] | surrogate (with `relative`), train, render |
 /// | `optimal_mis` | [`OptimalMisOptions`] [Hua §7.4] | train, render |
 ///
 /// The CV estimators use the power heuristic and uniform light selection for the parts
@@ -580,7 +580,7 @@ pub fn plan_task_count(job: &ResolvedJob, est: &EstimatorSpec) -> u64 {
 /// - `path`, `ocv`: one `render` phase, tiles of `tile_size`, `0..spp` split by
 ///   `samples_per_task` (= [`plan_tasks`]);
 /// - `cms`, `per_light_cv`, `optimal_mis` (sample ranges from
-///   [`PhasedEstimator::phases`]): `surrogate` (only for relative-variance `cms`; tiles of
+///   [`PhasedEstimator::phases`]): `surrogate` (only for relative-variance `cms` and `per_light_cv`; tiles of
 ///   `max(tile_size, SURROGATE_TILE)`, split by `samples_per_task`), `train` (tiles of [`TRAIN_TILE`], the whole
 ///   training range, one task per tile), `render` (tiles of `tile_size`, split by
 ///   `samples_per_task`). Phases without samples are left out.

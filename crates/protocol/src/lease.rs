@@ -17,7 +17,7 @@
 //! ```
 //!
 //! Leases of a CV job's `train` phase carry the content address of the surrogate image
-//! (`surrogate`, relative-variance `cms` only), those of its `render` phase the address of
+//! (`surrogate`, relative-variance `cms` and `per_light_cv` only), those of its `render` phase the address of
 //! the solved coefficient table (`coefficients`); workers fetch both with
 //! `GET /v1/assets/{hash}`, check the SHA-256 and cache them.
 

@@ -102,7 +102,7 @@ pub fn openapi() -> serde_json::Value {
                         "scene": { "description": "{\"inline\": <native scene JSON>} or {\"bundle\": <sha256>}" },
                         "assets": { "type": "object", "additionalProperties": { "type": "string", "pattern": "^[0-9a-f]{64}$" } },
                         "estimator": { "type": "object", "required": ["kind"],
-                            "description": "kind plus that estimator's options (protocol::job::EstimatorSpec; options of estimators::spec: OcvOptions, CmsOptions, PerLightCvOptions, OptimalMisOptions; unknown options rejected). Supported: path, ocv, cms, per_light_cv, optimal_mis; rerender and gradient answer 422 unsupported. CV kinds run the phases surrogate (relative cms) → train → render.",
+                            "description": "kind plus that estimator's options (protocol::job::EstimatorSpec; options of estimators::spec: OcvOptions, CmsOptions, PerLightCvOptions, OptimalMisOptions; unknown options rejected). Supported: path, ocv, cms, per_light_cv, optimal_mis; rerender and gradient answer 422 unsupported. CV kinds run the phases surrogate (relative cms and per_light_cv) → train → render.",
                             "properties": { "kind": { "enum": ["path", "ocv", "cms", "per_light_cv", "optimal_mis", "rerender", "gradient"] } } },
                         "spp": { "type": "integer", "minimum": 1 },
                         "time_budget_s": { "type": "number", "exclusiveMinimum": 0, "description": "stop adding render rounds (of samples_per_task) once this many seconds have passed since submission; spp is the cap" },

@@ -946,12 +946,19 @@ impl VertexObserver for Policy<'_, '_> {
             (Phase::Train(cells), Some(key)) => match cells.get(key, self.ctx) {
                 CellAcc::Moments(_) => {}
                 CellAcc::Mean(acc) => {
-                    acc.add_vertex();
-                    if let (Some(lt), Some(nee)) = (r.light, samples[0])
-                        && let Some((c, _)) = self.ctx.comps.of(lt.light)
-                    {
-                        acc.add(c, nee.value);
-                    }
+                    let t = r.throughput;
+                    let w = training_weight(f64::from(t.x + t.y + t.z) / 3.0, self.surrogate);
+                    // The NEE sample's light with the `1/c` its CV term is scaled by in the
+                    // render phase (`λ/p`, as `CoefficientTable::term`), and its value (zero
+                    // for a failed or occluded sample).
+                    let (selected, value) = match samples[0] {
+                        Some(nee) => (
+                            nee.partition.map(|(c, l)| (c, l * (1.0 / nee.pdf))),
+                            nee.value,
+                        ),
+                        None => (None, [0.0; 3]),
+                    };
+                    acc.record(w, selected, value);
                 }
             },
             (Phase::Apply(table), Some(key)) => {
@@ -1659,7 +1666,7 @@ fn cells_table(kind: Kind, cells: TileCells, image: f64) -> AccumulatorTable {
                     m.insert(u64::from(k), a);
                 }
             }
-            AccumulatorTable::Mean(m)
+            AccumulatorTable::Mean(m, Some(image))
         }
         _ => {
             let mut m = BTreeMap::new();
@@ -2109,7 +2116,7 @@ mod tests {
                 .cells
             {
                 AccumulatorTable::Moments(m, _) => m,
-                AccumulatorTable::Mean(_) => unreachable!("cms trains moments"),
+                AccumulatorTable::Mean(..) => unreachable!("cms trains moments"),
             }
         };
         let whole = table(&job, 1);
