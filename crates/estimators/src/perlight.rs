@@ -352,10 +352,14 @@ impl MeanContributionAccumulator {
 }
 
 /// Coefficients `α_i = Σ contributions_i / vertices` [Hua §7.2]; the plain estimator for a
-/// cell without vertices, and a fallback ([`FallbackReason::NoReduction`]) for a cell whose
-/// [`MeanContributionAccumulator::prediction`] says they would not reduce its weighted
-/// variance.
-pub fn mean_contribution_coefficients(acc: &MeanContributionAccumulator) -> CellCoefficients {
+/// cell without vertices, and a fallback for a cell with fewer than `min_vertices` vertices
+/// ([`FallbackReason::TooFewSamples`]: its means, and its in-sample prediction, are too
+/// noisy) or whose [`MeanContributionAccumulator::prediction`] says they would not reduce
+/// its weighted variance ([`FallbackReason::NoReduction`]).
+pub fn mean_contribution_coefficients(
+    acc: &MeanContributionAccumulator,
+    min_vertices: u64,
+) -> CellCoefficients {
     let layout = ComponentLayout {
         partitions: acc.lights,
         overlapping: 0,
@@ -364,13 +368,14 @@ pub fn mean_contribution_coefficients(acc: &MeanContributionAccumulator) -> Cell
     if acc.vertices == 0 {
         return plain;
     }
+    let fallback = |reason| {
+        CellCoefficients::fallen_back(layout, ColorMode::Rgb, *plain.diagnostics(), reason)
+    };
+    if acc.vertices < min_vertices {
+        return fallback(FallbackReason::TooFewSamples);
+    }
     if acc.prediction().is_some_and(|p| !(p.reduction > 0.0)) {
-        return CellCoefficients::fallen_back(
-            layout,
-            ColorMode::Rgb,
-            *plain.diagnostics(),
-            FallbackReason::NoReduction,
-        );
+        return fallback(FallbackReason::NoReduction);
     }
     let parts: Vec<(u32, [f64; CHANNELS])> = acc.alphas().collect();
     CellCoefficients::from_values(layout, ColorMode::Rgb, &parts, &[]).unwrap_or(plain)
@@ -399,7 +404,7 @@ mod tests {
         assert!(!acc.record(-1.0, None, [0.0; 3]));
         // 13 vertices (the rejected ones count, with nothing added): α₀ = 5·F/13.
         assert_eq!(acc.vertices(), 13);
-        let c = mean_contribution_coefficients(&acc);
+        let c = mean_contribution_coefficients(&acc, 1);
         assert_eq!(c.diagnostics().status, SolveStatus::Solved);
         assert_eq!(
             c.alpha_partition(0),
@@ -408,13 +413,22 @@ mod tests {
         assert_eq!(c.alpha_partition(1), [0.0; 3]);
         assert_eq!(c.alpha_partition(3), [0.0; 3]);
         assert_eq!(acc.rejected(), 3);
+        // Fewer vertices than asked for: too few samples.
+        assert_eq!(
+            mean_contribution_coefficients(&acc, 14)
+                .diagnostics()
+                .status,
+            SolveStatus::Fallback(FallbackReason::TooFewSamples)
+        );
         // A constant estimate has nothing to remove: the cell falls back.
         let mut flat = MeanContributionAccumulator::new(2);
         for i in 0..10 {
             flat.record(1.0, Some((i % 2, 2.0)), [1.0; 3]);
         }
         assert_eq!(
-            mean_contribution_coefficients(&flat).diagnostics().status,
+            mean_contribution_coefficients(&flat, 1)
+                .diagnostics()
+                .status,
             SolveStatus::Fallback(FallbackReason::NoReduction)
         );
     }
@@ -503,7 +517,7 @@ mod tests {
             p.reduction
         );
         assert_eq!(
-            mean_contribution_coefficients(&acc).diagnostics().status,
+            mean_contribution_coefficients(&acc, 1).diagnostics().status,
             SolveStatus::Solved
         );
     }
@@ -525,14 +539,21 @@ mod tests {
         let dark = build(1e4);
         assert!(dark.prediction().unwrap().reduction < 0.0);
         assert_eq!(
-            mean_contribution_coefficients(&dark).diagnostics().status,
+            mean_contribution_coefficients(&dark, 1)
+                .diagnostics()
+                .status,
             SolveStatus::Fallback(FallbackReason::NoReduction)
         );
-        assert_eq!(mean_contribution_coefficients(&dark).alpha_sum(), [0.0; 3]);
+        assert_eq!(
+            mean_contribution_coefficients(&dark, 1).alpha_sum(),
+            [0.0; 3]
+        );
         let even = build(1.0);
         assert!(even.prediction().unwrap().reduction > 0.0);
         assert_eq!(
-            mean_contribution_coefficients(&even).diagnostics().status,
+            mean_contribution_coefficients(&even, 1)
+                .diagnostics()
+                .status,
             SolveStatus::Solved
         );
     }
@@ -554,7 +575,7 @@ mod tests {
         }
         assert!(a.merge(&MeanContributionAccumulator::new(2)).is_err());
         assert!(
-            mean_contribution_coefficients(&MeanContributionAccumulator::new(3)).alpha_sum()
+            mean_contribution_coefficients(&MeanContributionAccumulator::new(3), 1).alpha_sum()
                 == [0.0; 3]
         );
         // A negative weight sum is refused.
@@ -581,7 +602,7 @@ mod tests {
         let old = MeanContributionAccumulator::decode(&v1).unwrap();
         assert_eq!(old.vertices(), 2);
         assert_eq!(old.prediction(), None);
-        let co = mean_contribution_coefficients(&old);
+        let co = mean_contribution_coefficients(&old, 1);
         assert_eq!(co.alpha_partition(2), [0.5, 1.0, 1.5]);
         let mut new = MeanContributionAccumulator::new(4);
         new.record(1.0, Some((2, 1.0)), [1.0; 3]);

@@ -495,7 +495,7 @@ impl AccumulatorTable {
             Self::Mean(t, image) => {
                 let out = par(t, threads, |a| {
                     (
-                        crate::perlight::mean_contribution_coefficients(a),
+                        crate::perlight::mean_contribution_coefficients(a, policy.min_samples),
                         a.rejected(),
                     )
                 });

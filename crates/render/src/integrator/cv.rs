@@ -1034,10 +1034,11 @@ const PROBE_MARGIN: f64 = 0.5;
 /// `path` and reports only these: on a scene whose fits cannot pay, the whole job would fall
 /// back at the train barrier anyway, and recording costs +25…+45 % per training sample (most
 /// of such a job's overhead). The decision depends only on the tile's own samples (fixed by
-/// the job), so it is the same on every worker and for any thread count. A tile of a moments
-/// estimator (`cms`, `optimal_mis`) with more training samples than these is always recorded
-/// in these two passes, each pixel adding all its samples in index order, so the bits do not
-/// depend on whether a minimum is set (with none, no probe decision is made).
+/// the job), so it is the same on every worker and for any thread count. A training tile
+/// (every CV estimator: `cms`, `optimal_mis` and, with its per-cell predictions,
+/// `per_light_cv`) with more training samples than these is always recorded in these two
+/// passes, each pixel adding all its samples in index order, so the bits do not depend on
+/// whether a minimum is set (with none, no probe decision is made).
 pub const TRAIN_PROBE_SPP: u32 = 2;
 
 /// What a render-phase tile produced: film, rays, and per pixel the summed CV term
@@ -1249,9 +1250,9 @@ impl<'a> CvJob<'a> {
         };
         let width = self.ctx.rs.width;
         let policy = self.solve_policy();
-        // Moments tables are recorded in two passes, the probe's samples and the rest (the
-        // same bits whether or not a minimum asks for the probe's decision).
-        let split = self.ctx.kind != Kind::PerLight && samples.len() > TRAIN_PROBE_SPP as usize;
+        // Tables are recorded in two passes, the probe's samples and the rest (the same bits
+        // whether or not a minimum asks for the probe's decision).
+        let split = samples.len() > TRAIN_PROBE_SPP as usize;
         let probe_end = if split {
             samples.start + TRAIN_PROBE_SPP
         } else {
