@@ -8,7 +8,7 @@
 # bench budget, default 30), SPP_SERIES (default 32,64,…,512), SCENES (default: colour-lamp many-lights veach-mis envmap cornell-box; empty for none),
 # DEPTHS (default: 2 5), ESTIMATORS (default: path,cms), SEEDS (renders per point, default 3:
 # the error is then the seed-to-seed variance of one render, free of the reference's own noise;
-# the reference only normalises).
+# the reference only normalises), OUT (default docs/bench: where the <scene>_d<D> directories go).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 BIN=${BIN:-target/release/cvfarm}
@@ -20,6 +20,7 @@ SCENES=${SCENES-"colour-lamp many-lights veach-mis envmap cornell-box"}
 DEPTHS=${DEPTHS:-"2 5"}
 ESTIMATORS=${ESTIMATORS:-path,cms}
 SEEDS=${SEEDS:-3}
+OUT=${OUT:-docs/bench}
 mkdir -p out/bench-ref
 for scene in $SCENES; do
   for d in $DEPTHS; do
@@ -30,16 +31,16 @@ for scene in $SCENES; do
     fi
     "$BIN" bench "scenes/$scene/scene.json" --estimators "$ESTIMATORS" --max-depth "$d" \
       --reference "$ref" --max-seconds "$MAX_SECONDS" --spp-series "$SPP_SERIES" --seeds "$SEEDS" \
-      --out "docs/bench/${scene}_d${d}"
+      --out "$OUT/${scene}_d${d}"
   done
 done
 # The shared Mitsuba scenes (MITSUBA_SCENES, default below; empty to skip) at their native
-# 128×128 against the shared references (depth 5 only), into docs/bench/mitsuba-<name>_d5.
+# 128×128 against the shared references (depth 5 only), into $OUT/mitsuba-<name>_d5.
 SHARED=${SHARED:-../shared/scenes-mitsuba}
 MITSUBA_SCENES=${MITSUBA_SCENES-"cbox manylights-4 bsdf-spheres/roughplastic-ggx bsdf-spheres/roughconductor-ggx"}
 for s in $MITSUBA_SCENES; do
   name=$(basename "$s")
   "$BIN" bench "$SHARED/$s/scene.xml" --estimators "$ESTIMATORS" --max-depth 5 \
     --reference "$SHARED/refs/${name}_d5.exr" --max-seconds 60 --spp-series 128,256,512 \
-    --seeds "$SEEDS" --out "docs/bench/mitsuba-${name}_d5"
+    --seeds "$SEEDS" --out "$OUT/mitsuba-${name}_d5"
 done

@@ -606,7 +606,9 @@ impl std::hash::Hasher for KeyHasher {
 type KeyMap = HashMap<u32, usize, std::hash::BuildHasherDefault<KeyHasher>>;
 
 /// One training sample of a moments accumulator: [`CellAccumulator::add_from`]'s arguments
-/// and the cell (64 bytes).
+/// and the cell (64 bytes). A `per_light_cv` vertex uses it for
+/// [`MeanContributionAccumulator::record`]'s: `weight`, `value`, the selected light in
+/// `partition` and its `1/c` in `lambda_partition`.
 #[derive(Clone, Copy, Debug)]
 struct TrainRecord {
     key: u32,
@@ -630,7 +632,7 @@ const BSDF_TECHNIQUE: u32 = 1 << 31;
 /// sums stay the same for any thread count.
 const TRAIN_LOG_MAX: usize = 1 << 20;
 
-/// Training accumulators of a band or a tile, in first-touch order, and (moments kinds) a
+/// Training accumulators of a band or a tile, in first-touch order, and a
 /// band's log of samples not yet added.
 ///
 /// A band of a training tile logs its samples and the tile adds the bands' logs in band order
@@ -664,27 +666,34 @@ impl TileCells {
     /// Adds logged samples to the cells, in order.
     fn add_records(&mut self, log: &[TrainRecord], ctx: &CvContext<'_>) {
         for r in log {
-            if let CellAcc::Moments(acc) = self.get(r.key, ctx) {
-                let lb = [r.lambda_bsdf];
-                let partition = r.partition & !BSDF_TECHNIQUE;
-                let sample = CvSample {
-                    pdf: r.pdf,
-                    partition: (partition != NO_PARTITION)
-                        .then_some((partition, r.lambda_partition)),
-                    overlapping: &lb,
-                };
-                let technique = if r.partition & BSDF_TECHNIQUE != 0 {
-                    Technique::Bsdf
-                } else {
-                    Technique::Light
-                };
-                let _ = acc.add_from(technique, r.weight, r.value, &sample);
-            }
+            let acc = match self.get(r.key, ctx) {
+                CellAcc::Moments(acc) => acc,
+                CellAcc::Mean(acc) => {
+                    // A vertex: its selected light (`lambda_partition` = `1/c`) and value.
+                    let selected =
+                        (r.partition != NO_PARTITION).then_some((r.partition, r.lambda_partition));
+                    acc.record(r.weight, selected, r.value);
+                    continue;
+                }
+            };
+            let lb = [r.lambda_bsdf];
+            let partition = r.partition & !BSDF_TECHNIQUE;
+            let sample = CvSample {
+                pdf: r.pdf,
+                partition: (partition != NO_PARTITION).then_some((partition, r.lambda_partition)),
+                overlapping: &lb,
+            };
+            let technique = if r.partition & BSDF_TECHNIQUE != 0 {
+                Technique::Bsdf
+            } else {
+                Technique::Light
+            };
+            let _ = acc.add_from(technique, r.weight, r.value, &sample);
         }
     }
 
-    /// Adds a band: its own cells (what it spilled, or a `per_light_cv` band's means), then
-    /// its log, in the band's sample order.
+    /// Adds a band: its own cells (what it spilled), then its log, in the band's sample
+    /// order.
     fn absorb(&mut self, band: TileCells, ctx: &CvContext<'_>) {
         for (key, acc) in &band.cells {
             // Same job, same layout: a merge cannot fail.
@@ -943,24 +952,31 @@ impl VertexObserver for Policy<'_, '_> {
                     cells.record(rec, self.ctx);
                 }
             }
-            (Phase::Train(cells), Some(key)) => match cells.get(key, self.ctx) {
-                CellAcc::Moments(_) => {}
-                CellAcc::Mean(acc) => {
-                    let t = r.throughput;
-                    let w = training_weight(f64::from(t.x + t.y + t.z) / 3.0, self.surrogate);
-                    // The NEE sample's light with the `1/c` its CV term is scaled by in the
-                    // render phase (`λ/p`, as `CoefficientTable::term`), and its value (zero
-                    // for a failed or occluded sample).
-                    let (selected, value) = match samples[0] {
-                        Some(nee) => (
-                            nee.partition.map(|(c, l)| (c, l * (1.0 / nee.pdf))),
-                            nee.value,
-                        ),
-                        None => (None, [0.0; 3]),
-                    };
-                    acc.record(w, selected, value);
-                }
-            },
+            (Phase::Train(cells), Some(key)) => {
+                // `per_light_cv`: one record per vertex, its NEE sample's light with the `1/c`
+                // its CV term is scaled by in the render phase (`λ/p`, as
+                // `CoefficientTable::term`), and its value (zero for a failed or occluded
+                // sample), logged like a moments sample.
+                let t = r.throughput;
+                let w = training_weight(f64::from(t.x + t.y + t.z) / 3.0, self.surrogate);
+                let (partition, inv_c, value) = match samples[0] {
+                    Some(nee) => match nee.partition {
+                        Some((c, l)) => (c, l * (1.0 / nee.pdf), nee.value),
+                        None => (NO_PARTITION, 0.0, nee.value),
+                    },
+                    None => (NO_PARTITION, 0.0, [0.0; 3]),
+                };
+                let rec = TrainRecord {
+                    key,
+                    partition,
+                    weight: w,
+                    value,
+                    pdf: 1.0,
+                    lambda_partition: inv_c,
+                    lambda_bsdf: 0.0,
+                };
+                cells.record(rec, self.ctx);
+            }
             (Phase::Apply(table), Some(key)) => {
                 if let Some(slot) = table.get(key) {
                     out = table.alpha_sum(slot);
