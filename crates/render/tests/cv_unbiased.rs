@@ -24,16 +24,20 @@ fn regions() -> Vec<(u32, u32, u32, u32)> {
     ]
 }
 
-fn check(scene_rel: &str, estimator: Estimator, seeds: u64, spp: u32, ref_spp: u32) {
+/// Checks the region means of `seeds` renders against a `path` reference; returns the
+/// smallest number of cells solved (with coefficients) over the renders.
+fn check(scene_rel: &str, estimator: Estimator, seeds: u64, spp: u32, ref_spp: u32) -> u64 {
     let s = load(scene_rel, W, H);
     let depth = Some(3);
     let opts = RenderOptions::default();
     let (reference, _) = render(&s, Estimator::Path, ref_spp, 999, depth, opts);
     let mut per_seed: Vec<Vec<[f64; 3]>> = Vec::new();
+    let mut solved = u64::MAX;
     for seed in 0..seeds {
         let (f, report) = render(&s, estimator, spp, seed, depth, opts);
         assert!(cv_support::all_finite(&f));
         assert!(report.render_spp > 0, "{report:?}");
+        solved = solved.min(report.cells_solved);
         per_seed.push(
             regions()
                 .iter()
@@ -71,6 +75,7 @@ fn check(scene_rel: &str, estimator: Estimator, seeds: u64, spp: u32, ref_spp: u
             );
         }
     }
+    solved
 }
 
 fn cms_coarse() -> Estimator {
@@ -87,12 +92,12 @@ fn cms_coarse() -> Estimator {
 
 #[test]
 fn cms_is_unbiased_on_colour_lamp() {
-    check("scenes/colour-lamp/scene.json", cms_coarse(), 16, 16, 1024);
+    assert!(check("scenes/colour-lamp/scene.json", cms_coarse(), 16, 16, 1024) > 0);
 }
 
 #[test]
 fn cms_is_unbiased_on_veach_mis() {
-    check("scenes/veach-mis/scene.json", cms_coarse(), 16, 16, 1024);
+    assert!(check("scenes/veach-mis/scene.json", cms_coarse(), 16, 16, 1024) > 0);
 }
 
 /// The unshrunk fit on the balance base (the paper's estimator [Hua eq. 17]).
@@ -109,7 +114,7 @@ fn cms_balance_base_without_shrinkage_is_unbiased_on_colour_lamp() {
         min_fit_gain: None,
         ..CmsOptions::default()
     });
-    check("scenes/colour-lamp/scene.json", e, 16, 16, 1024);
+    assert!(check("scenes/colour-lamp/scene.json", e, 16, 16, 1024) > 0);
 }
 
 #[test]
@@ -123,22 +128,27 @@ fn cms_absolute_mono_is_unbiased_on_cornell_box() {
         min_fit_gain: None,
         ..CmsOptions::default()
     });
-    check("scenes/cornell-box/scene.json", e, 16, 16, 1024);
+    assert!(check("scenes/cornell-box/scene.json", e, 16, 16, 1024) > 0);
 }
 
 #[test]
 fn cms_is_unbiased_on_envmap() {
-    check("scenes/envmap/scene.json", cms_coarse(), 16, 16, 1024);
+    assert!(check("scenes/envmap/scene.json", cms_coarse(), 16, 16, 1024) > 0);
 }
 
+/// With the surrogate weights and the per-cell rule, the table switch off so that the
+/// cells that keep their means are applied whatever the predicted gain (checked: some do).
 #[test]
 fn per_light_cv_is_unbiased_on_many_lights() {
     let e = Estimator::PerLightCv(PerLightCvOptions {
         training_spp: 8,
         grid_resolution: Some([4, 4, 4]),
+        min_image_gain: None,
+        min_fit_gain: None,
         ..PerLightCvOptions::default()
     });
-    check("scenes/many-lights/scene.json", e, 16, 16, 1024);
+    let solved = check("scenes/many-lights/scene.json", e, 16, 16, 1024);
+    assert!(solved > 0, "no cell kept its means");
 }
 
 #[test]
@@ -148,7 +158,7 @@ fn optimal_mis_is_unbiased_on_veach_mis() {
         min_samples: 8,
         ..OptimalMisOptions::default()
     });
-    check("scenes/veach-mis/scene.json", e, 16, 16, 1024);
+    assert!(check("scenes/veach-mis/scene.json", e, 16, 16, 1024) > 0);
 }
 
 /// With `α ≡ 0` the CV bookkeeping must reproduce the path tracer with the same MIS
