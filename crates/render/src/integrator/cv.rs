@@ -666,29 +666,28 @@ impl TileCells {
     /// Adds logged samples to the cells, in order.
     fn add_records(&mut self, log: &[TrainRecord], ctx: &CvContext<'_>) {
         for r in log {
-            let acc = match self.get(r.key, ctx) {
-                CellAcc::Moments(acc) => acc,
-                CellAcc::Mean(acc) => {
-                    // A vertex: its selected light (`lambda_partition` = `1/c`) and value.
-                    let selected =
-                        (r.partition != NO_PARTITION).then_some((r.partition, r.lambda_partition));
-                    acc.record(r.weight, selected, r.value);
-                    continue;
-                }
-            };
-            let lb = [r.lambda_bsdf];
             let partition = r.partition & !BSDF_TECHNIQUE;
-            let sample = CvSample {
-                pdf: r.pdf,
-                partition: (partition != NO_PARTITION).then_some((partition, r.lambda_partition)),
-                overlapping: &lb,
-            };
-            let technique = if r.partition & BSDF_TECHNIQUE != 0 {
-                Technique::Bsdf
-            } else {
-                Technique::Light
-            };
-            let _ = acc.add_from(technique, r.weight, r.value, &sample);
+            let selected = (partition != NO_PARTITION).then_some((partition, r.lambda_partition));
+            match self.get(r.key, ctx) {
+                // A `per_light_cv` vertex: its selected light (`lambda_partition` = `1/c`).
+                CellAcc::Mean(acc) => {
+                    acc.record(r.weight, selected, r.value);
+                }
+                CellAcc::Moments(acc) => {
+                    let lb = [r.lambda_bsdf];
+                    let sample = CvSample {
+                        pdf: r.pdf,
+                        partition: selected,
+                        overlapping: &lb,
+                    };
+                    let technique = if r.partition & BSDF_TECHNIQUE != 0 {
+                        Technique::Bsdf
+                    } else {
+                        Technique::Light
+                    };
+                    let _ = acc.add_from(technique, r.weight, r.value, &sample);
+                }
+            }
         }
     }
 
@@ -929,53 +928,52 @@ impl VertexObserver for Policy<'_, '_> {
         let kind = self.ctx.kind;
         let mut out = plain;
         match (&mut self.phase, cell) {
-            (Phase::Train(cells), Some(key)) if kind != Kind::PerLight => {
+            (Phase::Train(cells), Some(key)) => {
                 let w0 = if kind == Kind::OptimalMis {
                     1.0
                 } else {
                     let t = r.throughput;
                     training_weight(f64::from(t.x + t.y + t.z) / 3.0, self.surrogate)
                 };
-                // `samples` is `[NEE, BSDF]`.
-                for (s, technique) in samples.iter().zip([0, BSDF_TECHNIQUE]) {
-                    let Some(s) = s else { continue };
-                    let (partition, lambda_partition) = s.partition.unwrap_or((NO_PARTITION, 0.0));
+                if kind == Kind::PerLight {
+                    // One record per vertex: its NEE sample's light with the `1/c` its CV term
+                    // is scaled by in the render phase (`λ/p`, as `CoefficientTable::term`),
+                    // and its value (zero for a failed or occluded sample).
+                    let (partition, inv_c, value) = match samples[0] {
+                        Some(nee) => match nee.partition {
+                            Some((c, l)) => (c, l * (1.0 / nee.pdf), nee.value),
+                            None => (NO_PARTITION, 0.0, nee.value),
+                        },
+                        None => (NO_PARTITION, 0.0, [0.0; 3]),
+                    };
                     let rec = TrainRecord {
                         key,
-                        partition: partition | technique,
-                        weight: w0 * s.scale * s.scale,
-                        value: s.value,
-                        pdf: s.pdf,
-                        lambda_partition,
-                        lambda_bsdf: s.lambda_bsdf,
+                        partition,
+                        weight: w0,
+                        value,
+                        pdf: 1.0,
+                        lambda_partition: inv_c,
+                        lambda_bsdf: 0.0,
                     };
                     cells.record(rec, self.ctx);
+                } else {
+                    // `samples` is `[NEE, BSDF]`.
+                    for (s, technique) in samples.iter().zip([0, BSDF_TECHNIQUE]) {
+                        let Some(s) = s else { continue };
+                        let (partition, lambda_partition) =
+                            s.partition.unwrap_or((NO_PARTITION, 0.0));
+                        let rec = TrainRecord {
+                            key,
+                            partition: partition | technique,
+                            weight: w0 * s.scale * s.scale,
+                            value: s.value,
+                            pdf: s.pdf,
+                            lambda_partition,
+                            lambda_bsdf: s.lambda_bsdf,
+                        };
+                        cells.record(rec, self.ctx);
+                    }
                 }
-            }
-            (Phase::Train(cells), Some(key)) => {
-                // `per_light_cv`: one record per vertex, its NEE sample's light with the `1/c`
-                // its CV term is scaled by in the render phase (`λ/p`, as
-                // `CoefficientTable::term`), and its value (zero for a failed or occluded
-                // sample), logged like a moments sample.
-                let t = r.throughput;
-                let w = training_weight(f64::from(t.x + t.y + t.z) / 3.0, self.surrogate);
-                let (partition, inv_c, value) = match samples[0] {
-                    Some(nee) => match nee.partition {
-                        Some((c, l)) => (c, l * (1.0 / nee.pdf), nee.value),
-                        None => (NO_PARTITION, 0.0, nee.value),
-                    },
-                    None => (NO_PARTITION, 0.0, [0.0; 3]),
-                };
-                let rec = TrainRecord {
-                    key,
-                    partition,
-                    weight: w,
-                    value,
-                    pdf: 1.0,
-                    lambda_partition: inv_c,
-                    lambda_bsdf: 0.0,
-                };
-                cells.record(rec, self.ctx);
             }
             (Phase::Apply(table), Some(key)) => {
                 if let Some(slot) = table.get(key) {
