@@ -371,6 +371,32 @@ impl CellCoefficients {
         out
     }
 
+    /// The CV terms of a cell's recorded samples, summed with their weights:
+    /// `Σ_i w_i Σ_k α_k λ_k(x_i)/p(x_i) = Σ_k α_k g_k` per channel, `g_k = Σ w λ_k/p` the
+    /// accumulator's first moments. With unit weights this is [`cv_term`](Self::cv_term)
+    /// summed over the samples, so the controlled estimates of `n` vertices sum to their plain
+    /// values plus `n Σα − summed_term` [Hua eq. 17]: what the coefficients would change in
+    /// the pixel sums of those samples, without the samples. Components the accumulator did
+    /// not sample contribute nothing; a layout mismatch gives zero.
+    pub fn summed_term(&self, acc: &CellAccumulator) -> [f64; CHANNELS] {
+        let mut out = [0.0; CHANNELS];
+        if acc.layout() != self.layout {
+            return out;
+        }
+        let mut add = |a: [f64; CHANNELS], g: f64| {
+            for (o, a) in out.iter_mut().zip(a) {
+                *o += a * g;
+            }
+        };
+        for j in 0..self.layout.overlapping as usize {
+            add(self.alpha_overlapping(j), acc.g_overlapping(j));
+        }
+        for p in acc.partitions() {
+            add(self.alpha_partition(p.id), p.g);
+        }
+        out
+    }
+
     /// The controlled sample value `F − Σ_k α_k λ_k / p` (add [`alpha_sum`](Self::alpha_sum)
     /// once per vertex).
     pub fn apply(&self, value: [f64; CHANNELS], sample: &CvSample<'_>) -> [f64; CHANNELS] {

@@ -288,6 +288,7 @@ impl Default for PerLightCvOptions {
 /// | `max_light_components` | u32 | 1024 | more emitters than this are clustered by spatial proximity |
 /// | `ridge` | f64 | `1e-6` | relative Tikhonov regularisation |
 /// | `min_samples` | u64 | 16 | pixels with fewer training samples fall back to the plain estimator |
+/// | `min_split_gain` | f64 \| null | `0.25` | a training tile keeps its pixels' fits only when, fitted on one half of its training samples and applied to the other (both ways), they remove at least this fraction of the (relative) squared difference between the two halves' pixel estimates: the error of the sampler's stratified pixel means, which the in-sample moments cannot see (`render::integrator::cv`'s split-half check). Below it the tile's pixels are rendered as `path`. null always keeps them. Chosen by equal-spp and equal-time measurements (`docs/bench/README.md`) |
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct OptimalMisOptions {
@@ -301,7 +302,12 @@ pub struct OptimalMisOptions {
     pub ridge: f64,
     /// Minimum training samples per pixel.
     pub min_samples: u64,
+    /// Smallest split-half gain of a training tile's fits (`None`: always keep them).
+    pub min_split_gain: Option<f64>,
 }
+
+/// Default [`OptimalMisOptions::min_split_gain`].
+pub const DEFAULT_MIN_SPLIT_GAIN: f64 = 0.25;
 
 impl Default for OptimalMisOptions {
     fn default() -> Self {
@@ -311,6 +317,7 @@ impl Default for OptimalMisOptions {
             max_light_components: 1024,
             ridge: 1e-6,
             min_samples: 16,
+            min_split_gain: Some(DEFAULT_MIN_SPLIT_GAIN),
         }
     }
 }
@@ -414,6 +421,14 @@ impl PhasedEstimator {
                     return Err((name, "must be finite (or null to always apply the fits)"));
                 }
             }
+        }
+        if let Self::OptimalMis(o) = self
+            && o.min_split_gain.is_some_and(|g| !g.is_finite())
+        {
+            return Err((
+                "min_split_gain",
+                "must be finite (or null to always keep the fits)",
+            ));
         }
         if let Some(g) = grid {
             if g.contains(&0) {
@@ -531,6 +546,11 @@ mod tests {
                 ..CmsOptions::default()
             });
             assert_eq!(fit.validate().unwrap_err().0, "min_fit_gain");
+            let split = PhasedEstimator::OptimalMis(OptimalMisOptions {
+                min_split_gain: Some(g),
+                ..OptimalMisOptions::default()
+            });
+            assert_eq!(split.validate().unwrap_err().0, "min_split_gain");
         }
         let off = PhasedEstimator::Cms(CmsOptions {
             min_image_gain: None,

@@ -188,6 +188,27 @@ proptest! {
             }
         }
     }
+
+    /// `summed_term` of an accumulator is its samples' CV terms summed with their weights,
+    /// for coefficients fitted on other samples (the split-half check of `optimal_mis`).
+    #[test]
+    fn summed_term_is_the_weighted_sum_of_the_samples_terms(a in prop::collection::vec(smp(), 1..60), b in prop::collection::vec(smp(), 40..120), c in color()) {
+        let acc = build(&a, c);
+        let co = solve(&build(&b, c), &SolvePolicy { ridge: 1e-3, ..SolvePolicy::default() });
+        let mut want = [0.0f64; 3];
+        let mut scale = 0.0f64;
+        for s in &a {
+            let t = co.cv_term(&CvSample { pdf: s.pdf, partition: s.part, overlapping: &s.lam });
+            for ch in 0..3 {
+                want[ch] += s.w * t[ch];
+                scale = scale.max((s.w * t[ch]).abs());
+            }
+        }
+        let got = co.summed_term(&acc);
+        for ch in 0..3 {
+            prop_assert!((got[ch] - want[ch]).abs() <= 1e-9 * (1.0 + scale * a.len() as f64), "{got:?} vs {want:?}");
+        }
+    }
 }
 
 #[test]

@@ -410,6 +410,30 @@ fn the_default_switch_drops_useless_fits_and_keeps_useful_ones() {
 /// the job is `path`'s image up to rounding. Without the switches (`min_*_gain` null) the
 /// per-cell rule alone still drops cells there. On colour-lamp (1.9× at equal spp) the fit
 /// gain passes and most cells keep their means.
+/// `optimal_mis`'s per-pixel fits lose to the Sobol sampler's stratified pixel means on
+/// veach-mis (0.94–0.96× at equal spp, docs/bench/README.md): the split-half check drops the
+/// tile and the image is `path`'s; without the check the fits are applied and the image
+/// differs.
+#[test]
+fn optimal_mis_drops_fits_that_lose_to_the_stratified_pixel_mean() {
+    let opts = RenderOptions::default();
+    let veach = load("scenes/veach-mis/scene.json", 96, 64);
+    let (p, _) = render(&veach, Estimator::Path, 20, 0, Some(5), opts);
+    let run = |o: OptimalMisOptions| render(&veach, Estimator::OptimalMis(o), 20, 0, Some(5), opts);
+    let (f, r) = run(OptimalMisOptions::default());
+    assert!(
+        r.training_tiles > 0 && r.training_tiles_dropped == r.training_tiles && r.cells_solved == 0,
+        "{r:?}"
+    );
+    assert!(worst_relative_difference(&f, &p) <= 1e-5);
+    let (f, r) = run(OptimalMisOptions {
+        min_split_gain: None,
+        ..OptimalMisOptions::default()
+    });
+    assert!(r.training_tiles_dropped == 0 && r.cells_solved > 0, "{r:?}");
+    assert!(all_finite(&f) && worst_relative_difference(&f, &p) > 1e-3);
+}
+
 #[test]
 fn per_light_cv_keeps_its_means_only_where_they_reduce_the_weighted_variance() {
     let opts = RenderOptions::default();

@@ -169,6 +169,9 @@ pub struct EstimatorReport {
     pub training_tiles: u32,
     /// See [`Self::training_tiles`].
     pub training_tiles_stopped: u32,
+    /// Training tiles whose fits failed the split-half check of `optimal_mis`
+    /// ([`TrainTile::dropped`]): their pixels were rendered as `path`.
+    pub training_tiles_dropped: u32,
     /// Predicted fraction of the image's per-sample variance the fits remove
     /// ([`estimators::table::predicted_image_gain`]); `null` when not computed. Below the
     /// job's `min_image_gain` every cell falls back (`LowImageGain`).
@@ -422,6 +425,8 @@ struct CvContext<'a> {
     /// Records a training band logs before adding them to its own cells
     /// ([`TRAIN_LOG_MAX`]; smaller in tests, to exercise the spill).
     train_log_max: usize,
+    /// `optimal_mis`'s `min_split_gain` (`−∞`: no check; unused by the other kinds).
+    min_split_gain: f64,
 }
 
 impl CvContext<'_> {
@@ -703,6 +708,14 @@ impl TileCells {
             };
         }
         self.add_records(&band.log, ctx);
+    }
+
+    /// The moments accumulator of cell `key`, if it has one.
+    fn moments(&self, key: u32) -> Option<&CellAccumulator> {
+        match self.index.get(&key).map(|&s| &self.cells[s].1) {
+            Some(CellAcc::Moments(acc)) => Some(acc),
+            _ => None,
+        }
     }
 
     #[inline]
@@ -1024,6 +1037,9 @@ pub struct TrainTile {
     /// Whether the tile stopped recording after its first [`TRAIN_PROBE_SPP`] samples per
     /// pixel (its own fits were predicted not to pay; the rest was traced as `path`).
     pub stopped: bool,
+    /// Whether the tile's fits failed the split-half check ([`split_half_gain`], `optimal_mis`'s
+    /// `min_split_gain`): it reports no cells, and its pixels are rendered as `path`.
+    pub dropped: bool,
 }
 
 /// The tile probe's minima: each of the job's lowered by [`PROBE_MARGIN`] of its size, since
@@ -1168,6 +1184,10 @@ impl<'a> CvJob<'a> {
                 min_depth: estimator.min_depth(),
                 controls: estimator.controls_any_vertex(settings.max_depth_u32()),
                 train_log_max: TRAIN_LOG_MAX,
+                min_split_gain: match estimator {
+                    PhasedEstimator::OptimalMis(o) => o.min_split_gain.unwrap_or(f64::NEG_INFINITY),
+                    _ => f64::NEG_INFINITY,
+                },
                 base: match estimator.base() {
                     CvBase::Mis => settings.mis,
                     CvBase::Balance => super::MisHeuristic::Balance,
@@ -1310,20 +1330,67 @@ impl<'a> CvJob<'a> {
                         },
                         cells: probe,
                         stopped,
+                        dropped: false,
                     });
                 }
             }
+            // `optimal_mis` records its two halves apart, for the split-half check (always,
+            // so the bits do not depend on whether `min_split_gain` is set).
+            let halves =
+                self.ctx.kind == Kind::OptimalMis && samples.len() >= 2 * TRAIN_PROBE_SPP as usize;
+            let mid = if halves {
+                samples.start + samples.len() as u32 / 2
+            } else {
+                probe_end
+            };
+            if mid > probe_end {
+                let fold = InOrderFold::default();
+                let r = Banded::run(
+                    &self.ctx,
+                    tile,
+                    probe_end..mid,
+                    input,
+                    Some(&fold),
+                    Some(&film),
+                );
+                film = r.film;
+                rays += r.rays;
+                cells.absorb(fold.finish(), &self.ctx);
+            }
+            let first = halves.then(|| film.clone());
             let fold = InOrderFold::default();
-            let r = Banded::run(&self.ctx, tile, rest, input, Some(&fold), Some(&film));
+            let r = Banded::run(
+                &self.ctx,
+                tile,
+                mid..samples.end,
+                input,
+                Some(&fold),
+                Some(&film),
+            );
             film = r.film;
             rays += r.rays;
-            cells.absorb(fold.finish(), &self.ctx);
+            let second = fold.finish();
+            if let Some(first) = first
+                && self.ctx.min_split_gain > f64::NEG_INFINITY
+                && split_half_gain(&self.ctx, &policy, &cells, &second, &first, &film)
+                    .is_some_and(|g| g < self.ctx.min_split_gain)
+            {
+                let image = image_variance(&film, width, surrogate);
+                return Ok(TrainTile {
+                    out: TileFilm { film, rays },
+                    cells: cells_table(self.ctx.kind, TileCells::default(), image),
+                    stopped,
+                    dropped: true,
+                });
+            }
+            cells.absorb(second, &self.ctx);
         }
         let image = image_variance(&film, width, surrogate);
         Ok(TrainTile {
             out: TileFilm { film, rays },
             cells: cells_table(self.ctx.kind, cells, image),
             stopped,
+            dropped: false,
         })
     }
 
@@ -1670,6 +1737,86 @@ fn image_variance(film: &Film, image_width: u32, surrogate: Option<&[f64]>) -> f
     if total.is_finite() { total } else { 0.0 }
 }
 
+/// One pixel in this many of a training tile enters [`split_half_gain`] (chosen by image
+/// position, `(x + 3y) mod 8 = 0`, so every worker checks the same pixels): the check solves
+/// its pixels twice, and a whole tile's worth would cost as much as the job's solve phase.
+const SPLIT_CHECK_STRIDE: u32 = 8;
+
+/// The split-half check of an `optimal_mis` training tile: the fraction of the squared
+/// difference between the two halves' pixel estimates that the fits remove, each half's CV
+/// fitted on the other half's samples (cross-fitting: no in-sample optimism), weighted per
+/// channel by `1/(m² + ε)` with `m` the pixel's training mean (relMSE's weighting, ε = 0.01).
+///
+/// Why the halves: the variance a per-pixel fit removes is the iid per-sample variance of
+/// the camera hit's direct light, but the plain estimate is a mean over the Sobol sampler's
+/// stratified samples, whose error falls faster than that (docs/bench/README.md: 0.94–0.99×
+/// at equal spp where the in-sample fit gains were 0.69–0.98). The two halves of the training
+/// range (samples `0..n/2` and `n/2..n`, each a stratified set) are two estimates of the
+/// pixel, so `E[(ȳ_A − ȳ_B)²]` is the error of a stratified half-estimate (with the halves'
+/// covariance, which has the same sign for the plain and the controlled estimate), and the
+/// same difference of the controlled estimates is what the fits make of it. A half's
+/// controlled sum is its plain sum plus `n_h Σα − Σ_k α_k g_k` ([`CellCoefficients::summed_term`];
+/// `n_h` = its NEE samples, one per controlled vertex, of weight 1 in `optimal_mis`). The
+/// half fits have half the samples of the job's (`min_samples` halved too), so the check is
+/// conservative. `None` when no checked pixel has both halves.
+fn split_half_gain(
+    ctx: &CvContext<'_>,
+    policy: &SolvePolicy,
+    first_cells: &TileCells,
+    second_cells: &TileCells,
+    first: &Film,
+    film: &Film,
+) -> Option<f64> {
+    const EPS: f64 = 0.01;
+    let half = SolvePolicy {
+        min_samples: policy.min_samples.div_ceil(2),
+        ..*policy
+    };
+    // The change a half's samples get from coefficients fitted on the other half.
+    let change = |acc: Option<&CellAccumulator>, other: Option<&CellAccumulator>| {
+        let (Some(acc), Some(other)) = (acc, other) else {
+            return [0.0; 3];
+        };
+        let co = estimators::solve::solve(other, &half);
+        if co.is_fallback() {
+            return [0.0; 3];
+        }
+        let n = acc.technique_sums().0;
+        let (a, t) = (co.alpha_sum(), co.summed_term(acc));
+        [0, 1, 2].map(|c| n * a[c] - t[c])
+    };
+    let (mut plain, mut controlled) = (0.0f64, 0.0f64);
+    let mut any = false;
+    for y in film.y0..film.y0 + film.height {
+        for x in film.x0..film.x0 + film.width {
+            if (x + 3 * y) % SPLIT_CHECK_STRIDE != 0 {
+                continue;
+            }
+            let (pa, pt) = (first.pixel(x, y), film.pixel(x, y));
+            let (na, nt) = (pa.count, pt.count);
+            if na == 0 || nt <= na {
+                continue;
+            }
+            let (na, nb, nt) = (na as f64, (nt - na) as f64, nt as f64);
+            let key = y * ctx.rs.width + x;
+            let (a, b) = (first_cells.moments(key), second_cells.moments(key));
+            let (da, db) = (change(a, b), change(b, a));
+            for c in 0..3 {
+                let d_plain = pa.sum[c] / na - (pt.sum[c] - pa.sum[c]) / nb;
+                let d_cv = d_plain + da[c] / na - db[c] / nb;
+                let m = pt.sum[c] / nt;
+                let w = 1.0 / (m * m + EPS);
+                if (w * d_plain * d_plain).is_finite() && (w * d_cv * d_cv).is_finite() {
+                    plain += w * d_plain * d_plain;
+                    controlled += w * d_cv * d_cv;
+                    any = true;
+                }
+            }
+        }
+    }
+    (any && plain > 0.0).then(|| 1.0 - controlled / plain)
+}
+
 /// Training cells (a tile's, or none) as a table keyed by cell (of the job's kind, also when
 /// empty), with the tile's image variance for moments.
 fn cells_table(kind: Kind, cells: TileCells, image: f64) -> AccumulatorTable {
@@ -1933,9 +2080,11 @@ pub fn render_estimator_image(
     let t0 = Instant::now();
     let mut tables = Vec::with_capacity(outs.len());
     let (training_tiles, mut training_tiles_stopped) = (outs.len() as u32, 0);
+    let mut training_tiles_dropped = 0;
     for o in outs {
         let o = o?;
         training_tiles_stopped += u32::from(o.stopped);
+        training_tiles_dropped += u32::from(o.dropped);
         film.merge(&o.out.film);
         rays += o.out.rays;
         tables.push(o.cells);
@@ -1951,6 +2100,7 @@ pub fn render_estimator_image(
         render_spp: ph.render.len() as u32,
         training_tiles,
         training_tiles_stopped,
+        training_tiles_dropped,
         grid_resolution: job.grid_resolution(),
         cells: solved.coefficients.len() as u64,
         lights: rs.lights.len() as u32,

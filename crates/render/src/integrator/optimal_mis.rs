@@ -6,6 +6,12 @@
 //! is controlled; deeper vertices use the plain balance heuristic. With one integral per
 //! cell the relative weighting cancels, so there is no surrogate phase.
 //!
+//! A per-pixel fit removes iid per-sample variance at the camera hit, but the plain pixel
+//! estimate is a mean of the Sobol sampler's stratified samples, whose error falls faster.
+//! So each training tile checks its fits out of sample on its two halves of training samples
+//! (`min_split_gain`, see `cv::split_half_gain`) and renders its pixels as `path` where they
+//! do not pay.
+//!
 //! Options (defaults, ranges, meaning): the table of [`OptimalMisOptions`] (defined once, in
 //! `estimators::spec`, for the CLI, the farm's API and the renderer).
 //!
