@@ -536,7 +536,11 @@ fn training_table_bits_do_not_depend_on_threads() {
     let s = load("scenes/many-lights/scene.json", 64, 128);
     let estimators = [
         Estimator::Cms(CmsOptions::default()),
-        Estimator::OptimalMis(OptimalMisOptions::default()),
+        // The split-half check off: it would drop the tile's table.
+        Estimator::OptimalMis(OptimalMisOptions {
+            min_split_gain: None,
+            ..OptimalMisOptions::default()
+        }),
         Estimator::PerLightCv(PerLightCvOptions::default()),
     ];
     for e in estimators {
