@@ -401,15 +401,6 @@ fn the_default_switch_drops_useless_fits_and_keeps_useful_ones() {
     }
 }
 
-/// `per_light_cv`'s coefficients (cell means, not fitted) are kept only where they reduce the
-/// cell's surrogate-weighted variance [Hua eq. 25, 29], and the table switch of `cms` decides
-/// whether the rest pays. On veach-mis the cell means subtracted at the dark pixels' vertices
-/// made the image 8× noisier at equal spp (`docs/bench/README.md`); now the cells that would
-/// add variance fall back (`NoReduction`), the rest are predicted to remove little of the
-/// NEE estimates' weighted variance (fit gain ~0.04 < 0.2), the table is switched off and
-/// the job is `path`'s image up to rounding. Without the switches (`min_*_gain` null) the
-/// per-cell rule alone still drops cells there. On colour-lamp (1.9× at equal spp) the fit
-/// gain passes and most cells keep their means.
 /// `optimal_mis`'s per-pixel fits lose to the Sobol sampler's stratified pixel means on
 /// veach-mis (0.94–0.96× at equal spp, docs/bench/README.md): the split-half check drops the
 /// tile and the image is `path`'s; without the check the fits are applied and the image
@@ -434,6 +425,15 @@ fn optimal_mis_drops_fits_that_lose_to_the_stratified_pixel_mean() {
     assert!(all_finite(&f) && worst_relative_difference(&f, &p) > 1e-3);
 }
 
+/// `per_light_cv`'s coefficients (cell means, not fitted) are kept only where they reduce the
+/// cell's surrogate-weighted variance [Hua eq. 25, 29], and the table switch of `cms` decides
+/// whether the rest pays. On veach-mis the cell means subtracted at the dark pixels' vertices
+/// made the image 8× noisier at equal spp (`docs/bench/README.md`); now the cells that would
+/// add variance fall back (`NoReduction`), the rest are predicted to remove little of the
+/// NEE estimates' weighted variance (fit gain ~0.04 < 0.2), the table is switched off and
+/// the job is `path`'s image up to rounding. Without the switches (`min_*_gain` null) the
+/// per-cell rule alone still drops cells there. On colour-lamp (1.9× at equal spp) the fit
+/// gain passes and most cells keep their means.
 #[test]
 fn per_light_cv_keeps_its_means_only_where_they_reduce_the_weighted_variance() {
     let opts = RenderOptions::default();

@@ -425,8 +425,8 @@ struct CvContext<'a> {
     /// Records a training band logs before adding them to its own cells
     /// ([`TRAIN_LOG_MAX`]; smaller in tests, to exercise the spill).
     train_log_max: usize,
-    /// `optimal_mis`'s `min_split_gain` (`−∞`: no check; unused by the other kinds).
-    min_split_gain: f64,
+    /// `optimal_mis`'s `min_split_gain` (`None`: no check; always `None` for the other kinds).
+    min_split_gain: Option<f64>,
 }
 
 impl CvContext<'_> {
@@ -1185,8 +1185,8 @@ impl<'a> CvJob<'a> {
                 controls: estimator.controls_any_vertex(settings.max_depth_u32()),
                 train_log_max: TRAIN_LOG_MAX,
                 min_split_gain: match estimator {
-                    PhasedEstimator::OptimalMis(o) => o.min_split_gain.unwrap_or(f64::NEG_INFINITY),
-                    _ => f64::NEG_INFINITY,
+                    PhasedEstimator::OptimalMis(o) => o.min_split_gain,
+                    _ => None,
                 },
                 base: match estimator.base() {
                     CvBase::Mis => settings.mis,
@@ -1292,19 +1292,16 @@ impl<'a> CvJob<'a> {
         } else {
             samples.end
         };
-        let fold = InOrderFold::default();
-        let t = Banded::run(
-            &self.ctx,
-            tile,
-            samples.start..probe_end,
-            input,
-            Some(&fold),
-            None,
-        );
-        // Every band's samples, added in band order (see [`BAND_ROWS`]).
-        let mut cells = fold.finish();
+        // Training `range` on top of the tile's film `start`: every band's samples, added in
+        // band order (see [`BAND_ROWS`]), and the film.
+        let record = |range: Range<u32>, start: Option<&Film>| {
+            let fold = InOrderFold::default();
+            let t = Banded::run(&self.ctx, tile, range, input, Some(&fold), start);
+            (fold.finish(), t)
+        };
+        let (mut cells, t) = record(samples.start..probe_end, None);
         let (mut film, mut rays) = (t.film, t.rays);
-        let mut stopped = false;
+        let (mut stopped, mut dropped) = (false, false);
         if split {
             let rest = probe_end..samples.end;
             if policy.min_image_gain > f64::NEG_INFINITY || policy.min_fit_gain > f64::NEG_INFINITY
@@ -1344,53 +1341,34 @@ impl<'a> CvJob<'a> {
                 probe_end
             };
             if mid > probe_end {
-                let fold = InOrderFold::default();
-                let r = Banded::run(
-                    &self.ctx,
-                    tile,
-                    probe_end..mid,
-                    input,
-                    Some(&fold),
-                    Some(&film),
-                );
-                film = r.film;
-                rays += r.rays;
-                cells.absorb(fold.finish(), &self.ctx);
+                let (first, r) = record(probe_end..mid, Some(&film));
+                (film, rays) = (r.film, rays + r.rays);
+                cells.absorb(first, &self.ctx);
             }
-            let first = halves.then(|| film.clone());
-            let fold = InOrderFold::default();
-            let r = Banded::run(
-                &self.ctx,
-                tile,
-                mid..samples.end,
-                input,
-                Some(&fold),
-                Some(&film),
-            );
-            film = r.film;
-            rays += r.rays;
-            let second = fold.finish();
-            if let Some(first) = first
-                && self.ctx.min_split_gain > f64::NEG_INFINITY
-                && split_half_gain(&self.ctx, &policy, &cells, &second, &first, &film)
-                    .is_some_and(|g| g < self.ctx.min_split_gain)
-            {
-                let image = image_variance(&film, width, surrogate);
-                return Ok(TrainTile {
-                    out: TileFilm { film, rays },
-                    cells: cells_table(self.ctx.kind, TileCells::default(), image),
-                    stopped,
-                    dropped: true,
-                });
+            // The first half's film, kept only when the check will run.
+            let check = self
+                .ctx
+                .min_split_gain
+                .filter(|_| halves)
+                .map(|min| (min, film.clone()));
+            let (second, r) = record(mid..samples.end, Some(&film));
+            (film, rays) = (r.film, rays + r.rays);
+            dropped = check.is_some_and(|(min, first)| {
+                split_half_gain(&self.ctx, &policy, &cells, &second, &first, &film)
+                    .is_some_and(|g| g < min)
+            });
+            if dropped {
+                cells = TileCells::default();
+            } else {
+                cells.absorb(second, &self.ctx);
             }
-            cells.absorb(second, &self.ctx);
         }
         let image = image_variance(&film, width, surrogate);
         Ok(TrainTile {
             out: TileFilm { film, rays },
             cells: cells_table(self.ctx.kind, cells, image),
             stopped,
-            dropped: false,
+            dropped,
         })
     }
 
