@@ -9,7 +9,7 @@
 //! |---|---|---|---|
 //! | `color` | `"rgb"` \| `"mono"` | `"rgb"` | per-channel or shared coefficients [Hua §4.3] |
 //! | `relative` | bool | true | weight samples by `1/(surrogate + 0.01)²` [Hua eq. 25] |
-//! | `ridge` | f64 | `1` for `cms`, `1e-6` for `optimal_mis` (SolvePolicy default `1e-6`) | [`SolvePolicy::ridge`] |
+//! | `ridge` | f64 | `0.5` for `cms`, `1e-6` for `optimal_mis` (SolvePolicy default `1e-6`) | [`SolvePolicy::ridge`] |
 //! | `min_samples` | u64 | 16 | [`SolvePolicy::min_samples`] |
 //! | `min_effective_samples` | f64 | 4 | [`SolvePolicy::min_effective_samples`] |
 //! | `min_partition_samples` | u64 | 1 | [`SolvePolicy::min_partition_samples`] |

@@ -175,7 +175,7 @@ pub const DEFAULT_MIN_FIT_GAIN: f64 = 0.2;
 /// | `surrogate_spp` | u32 | 1 | samples per pixel of the surrogate image (only with `relative`; kept in the image) |
 /// | `grid_resolution` | `[nx, ny, nz]` \| null | null | cells per axis over the scene bounds; null = adaptive (≈ 16×16 pixels per cell) |
 /// | `max_light_components` | u32 | 1024 | more emitters than this are clustered by spatial proximity |
-/// | `ridge` | f64 | `1` | relative Tikhonov regularisation of each cell system: `A + ridge·diag(A)` shrinks `α` toward the base estimator (`path` with the default `base`); 1 halves an uncorrelated coefficient. Chosen by equal-spp measurements (`docs/bench/README.md`): the unshrunk fit loses to `path` on direct lighting |
+/// | `ridge` | f64 | `0.5` | relative Tikhonov regularisation of each cell system: `A + ridge·diag(A)` shrinks `α` toward the base estimator (`path` with the default `base`); 0.5 scales an uncorrelated coefficient by 2/3. Chosen by equal-spp measurements (`docs/bench/README.md`, "The ridge with `min_depth` 1"): with the CV off the camera hit, 1 shrank colour-lamp's fits too far (1.42× → 1.53× at 0.5), and below 0.5 many-lights' sparsely sampled lights lose |
 /// | `min_samples` | u64 | 16 | cells with fewer training samples fall back to the plain estimator |
 /// | `base` | `"mis"` \| `"balance"` | `"mis"` | base estimator (`α ≡ 0`): the job's MIS heuristic (= `path`) or balance [`CvBase`] |
 /// | `min_image_gain` | f64 \| null | `3e-4` | the fits are applied only when they are predicted to remove at least this fraction of the image's per-sample (relative) variance, measured on the training samples ([`crate::table::predicted_image_gain`]); below it every cell falls back and the render phase is traced as `path`; a training tile whose own first 2 spp predict less than half of it stops recording (`render::integrator::cv::TRAIN_PROBE_SPP`). null always applies them. Chosen by equal-spp and equal-time measurements (`docs/bench/README.md`) |
@@ -219,7 +219,7 @@ impl Default for CmsOptions {
             surrogate_spp: 1,
             grid_resolution: None,
             max_light_components: 1024,
-            ridge: 1.0,
+            ridge: 0.5,
             min_samples: 16,
             base: CvBase::Mis,
             min_depth: 1,

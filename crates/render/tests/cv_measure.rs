@@ -8,7 +8,8 @@
 //!   cargo test --release -p render --test cv_measure -- --ignored --nocapture
 //! ```
 //! `CV_SPP` (default 128), `CV_SEEDS` (default 2), `CV_REF_SPP` (default 1024),
-//! `CV_SCALE` (film divisor, default 2).
+//! `CV_SCALE` (film divisor, default 2). A scene is a name under `scenes/` or a path (with a
+//! `/`) relative to the repository root.
 
 mod cv_support;
 
@@ -65,7 +66,14 @@ fn measure_equal_spp_ratios() {
     for sd in scenes.split(',') {
         let (name, d) = sd.split_once(':').expect("scene:depth");
         let depth: i32 = d.parse().unwrap();
-        let s = cv_support::load_scaled(&format!("scenes/{name}/scene.json"), scale);
+        // A bare name is one of `scenes/`; anything with a `/` is a scene file relative to
+        // the repository root (e.g. `../shared/scenes-mitsuba/manylights-4/scene.xml`).
+        let rel = if name.contains('/') {
+            name.to_string()
+        } else {
+            format!("scenes/{name}/scene.json")
+        };
+        let s = cv_support::load_scaled(&rel, scale);
         let (reference, _) = render(&s, Estimator::Path, ref_spp, 4242, Some(depth), opts);
         let run = |e: Estimator| {
             let (mut err, mut cpu, mut wall) = (0.0, 0.0, 0.0);

@@ -378,6 +378,7 @@ fn the_default_switch_drops_useless_fits_and_keeps_useful_ones() {
             "{rel}: image gain {image_gain}, fit gain {fit_gain}, solved {}, fallback {:?}",
             r.cells_solved, r.cells_fallback
         );
+        eprintln!("{summary}");
         match off_by {
             None => assert!(
                 r.cells_solved > 0 && switched == 0 && fit_gain >= min_fit,
