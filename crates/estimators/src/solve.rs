@@ -16,7 +16,7 @@
 //! | `max_condition` | f64 | `1e12` | [`SolvePolicy::max_condition`] |
 //!
 //! ```json
-//! { "kind": "cms", "color": "rgb", "relative": true, "training_spp": 16, "ridge": 1.0 }
+//! { "kind": "cms", "color": "rgb", "relative": true, "training_spp": 16, "ridge": 0.5 }
 //! ```
 //!
 //! # What is solved
