@@ -674,3 +674,106 @@ fn a_training_tile_whose_own_fits_cannot_pay_records_only_its_probe() {
     assert!(bits(&kept) == bits(&train(lamp, always, 1).0));
     assert!(bits(&kept) == bits(&train(lamp, CmsOptions::default(), 3).0));
 }
+
+/// An `optimal_mis` training tile records its split-half check's pixels (one in 8) first and
+/// decides on them: a tile the check drops (veach-mis) traces its other pixels' training
+/// samples as `path`, without records, so those pixels hold every training sample and agree
+/// with the recorded run up to rounding while the checked pixels keep its bits and no cell is
+/// reported; a tile the check keeps records the other pixels in the same passes, with the
+/// bits of a job without the check. Both independent of the thread count.
+#[test]
+fn an_optimal_mis_tile_records_its_checked_pixels_first() {
+    use estimators::table::AccumulatorTable;
+    use render::integrator::cv::{CvJob, TrainTile};
+    use render::{RenderScene, RenderSettings, TileRect};
+
+    let (w, h) = (64u32, 48u32);
+    let tile = TileRect {
+        x0: 0,
+        y0: 0,
+        width: w,
+        height: h,
+    };
+    let veach = load("scenes/veach-mis/scene.json", w, h);
+    let train = |o: OptimalMisOptions, threads: usize| -> (TrainTile, u32) {
+        let st = RenderSettings {
+            spp: 40,
+            seed: 2,
+            max_depth: 5,
+            estimator: Estimator::OptimalMis(o),
+            ..RenderSettings::from_scene(&veach)
+        };
+        let rs = RenderScene::new(&veach, &st).unwrap();
+        let job = CvJob::new(&rs, &st).unwrap().expect("a phased estimator");
+        let range = job.phases().train.clone();
+        (
+            train_on_threads(&job, tile, &range, None, threads),
+            range.len() as u32,
+        )
+    };
+    let bits = |t: &TrainTile| {
+        let film: Vec<u64> = t
+            .out
+            .film
+            .pixels
+            .iter()
+            .flat_map(|q| q.sum.map(f64::to_bits))
+            .collect();
+        (t.cells.encode(), film)
+    };
+    let cells = |t: &TrainTile| match &t.cells {
+        AccumulatorTable::Moments(m, _) => m.len(),
+        AccumulatorTable::Mean(..) => panic!("moments"),
+    };
+    let off = OptimalMisOptions {
+        min_split_gain: None,
+        ..OptimalMisOptions::default()
+    };
+    let (recorded, spp) = train(off, 1);
+    assert!(!recorded.dropped && cells(&recorded) > 0);
+
+    // Kept: the check runs and its minimum keeps every tile.
+    let keep = OptimalMisOptions {
+        min_split_gain: Some(f64::MIN),
+        ..OptimalMisOptions::default()
+    };
+    for threads in [1, 3] {
+        let (kept, _) = train(keep, threads);
+        assert!(!kept.dropped);
+        assert!(bits(&kept) == bits(&recorded), "{threads} threads");
+    }
+
+    // Dropped: the default minimum on veach-mis.
+    let (dropped, _) = train(OptimalMisOptions::default(), 1);
+    assert!(dropped.dropped && cells(&dropped) == 0);
+    assert!(bits(&train(OptimalMisOptions::default(), 3).0) == bits(&dropped));
+    let (mut checked, mut other) = (0, 0);
+    for (i, (p, q)) in dropped
+        .out
+        .film
+        .pixels
+        .iter()
+        .zip(&recorded.out.film.pixels)
+        .enumerate()
+    {
+        let (x, y) = (i as u32 % w, i as u32 / w);
+        assert_eq!(p.count, u64::from(spp));
+        if (x + 3 * y).is_multiple_of(8) {
+            checked += 1;
+            assert!(
+                p.sum.map(f64::to_bits) == q.sum.map(f64::to_bits),
+                "pixel {x},{y}"
+            );
+        } else {
+            other += 1;
+            for c in 0..3 {
+                let d = (p.sum[c] - q.sum[c]).abs();
+                assert!(
+                    d <= 1e-5 * q.sum[c].abs().max(1e-3),
+                    "pixel {x},{y}: {p:?} vs {q:?}"
+                );
+            }
+        }
+    }
+    assert!(checked > 0 && other > 6 * checked);
+}

@@ -1253,6 +1253,7 @@ impl<'a> CvJob<'a> {
             kind: PhaseKind::Plain,
             table: None,
             surrogate: None,
+            pixels: Pixels::All,
         };
         let t = Banded::run(&self.ctx, tile, samples, input, None, None);
         TileFilm {
@@ -1281,6 +1282,7 @@ impl<'a> CvJob<'a> {
             kind: PhaseKind::Train,
             table: None,
             surrogate,
+            pixels: Pixels::All,
         };
         let width = self.ctx.rs.width;
         let policy = self.solve_policy();
@@ -1294,12 +1296,20 @@ impl<'a> CvJob<'a> {
         };
         // Training `range` on top of the tile's film `start`: every band's samples, added in
         // band order (see [`BAND_ROWS`]), and the film.
-        let record = |range: Range<u32>, start: Option<&Film>| {
+        let record = |range: Range<u32>, start: Option<&Film>, pixels: Pixels| {
             let fold = InOrderFold::default();
+            let input = PhaseInput { pixels, ..input };
             let t = Banded::run(&self.ctx, tile, range, input, Some(&fold), start);
             (fold.finish(), t)
         };
-        let (mut cells, t) = record(samples.start..probe_end, None);
+        // `path`'s own samples for `pixels`: no records, none of the CV's extra rays.
+        let plain = |pixels: Pixels| PhaseInput {
+            kind: PhaseKind::Plain,
+            table: None,
+            surrogate: None,
+            pixels,
+        };
+        let (mut cells, t) = record(samples.start..probe_end, None, Pixels::All);
         let (mut film, mut rays) = (t.film, t.rays);
         let (mut stopped, mut dropped) = (false, false);
         if split {
@@ -1313,13 +1323,9 @@ impl<'a> CvJob<'a> {
                 );
                 stopped = probe.solve(&probe_policy(policy), 1).switched_off.is_some();
                 if stopped {
-                    // The rest as `path`: no records, none of the CV's extra rays.
-                    let plain = PhaseInput {
-                        kind: PhaseKind::Plain,
-                        table: None,
-                        surrogate: None,
-                    };
-                    let r = Banded::run(&self.ctx, tile, rest, plain, None, Some(&film));
+                    // The rest as `path`.
+                    let r =
+                        Banded::run(&self.ctx, tile, rest, plain(Pixels::All), None, Some(&film));
                     return Ok(TrainTile {
                         out: TileFilm {
                             film: r.film,
@@ -1340,27 +1346,61 @@ impl<'a> CvJob<'a> {
             } else {
                 probe_end
             };
-            if mid > probe_end {
-                let (first, r) = record(probe_end..mid, Some(&film));
-                (film, rays) = (r.film, rays + r.rays);
-                cells.absorb(first, &self.ctx);
+            // The two halves of `pixels` on top of `film`: the first half's cells (none when
+            // the probe is the first half), the film after it, the second half's cells, the
+            // film after both, and their rays.
+            let halves_of = |pixels: Pixels, film: Film| {
+                let (first, film, rays) = if mid > probe_end {
+                    let (c, r) = record(probe_end..mid, Some(&film), pixels);
+                    (Some(c), r.film, r.rays)
+                } else {
+                    (None, film, 0)
+                };
+                let (second, r) = record(mid..samples.end, Some(&film), pixels);
+                (first, film, second, r.film, rays + r.rays)
+            };
+            // With the check, the pixels it reads record their halves first. A tile it drops
+            // traces its other pixels' training samples as `path`, so it pays the records of
+            // one pixel in `SPLIT_CHECK_STRIDE` only; a tile it keeps records the others in
+            // the same two passes, so every pixel's cells and film are added in the same
+            // passes whether the check runs or not (cells are pixels: no two sets share one).
+            let check = self.ctx.min_split_gain.filter(|_| halves);
+            let set = if check.is_some() {
+                Pixels::Checked
+            } else {
+                Pixels::All
+            };
+            let (first, first_film, second, f, r) = halves_of(set, film);
+            (film, rays) = (f, rays + r);
+            if let Some(c) = first {
+                cells.absorb(c, &self.ctx);
             }
-            // The first half's film, kept only when the check will run.
-            let check = self
-                .ctx
-                .min_split_gain
-                .filter(|_| halves)
-                .map(|min| (min, film.clone()));
-            let (second, r) = record(mid..samples.end, Some(&film));
-            (film, rays) = (r.film, rays + r.rays);
-            dropped = check.is_some_and(|(min, first)| {
-                split_half_gain(&self.ctx, &policy, &cells, &second, &first, &film)
+            dropped = check.is_some_and(|min| {
+                split_half_gain(&self.ctx, &policy, &cells, &second, &first_film, &film)
                     .is_some_and(|g| g < min)
             });
             if dropped {
                 cells = TileCells::default();
+                let rest = probe_end..samples.end;
+                let r = Banded::run(
+                    &self.ctx,
+                    tile,
+                    rest,
+                    plain(Pixels::Unchecked),
+                    None,
+                    Some(&film),
+                );
+                (film, rays) = (r.film, rays + r.rays);
             } else {
                 cells.absorb(second, &self.ctx);
+                if check.is_some() {
+                    let (first, _, second, f, r) = halves_of(Pixels::Unchecked, film);
+                    (film, rays) = (f, rays + r);
+                    if let Some(c) = first {
+                        cells.absorb(c, &self.ctx);
+                    }
+                    cells.absorb(second, &self.ctx);
+                }
             }
         }
         let image = image_variance(&film, width, surrogate);
@@ -1440,6 +1480,7 @@ impl<'a> CvJob<'a> {
             kind: PhaseKind::Apply,
             table: Some(table),
             surrogate: None,
+            pixels: Pixels::All,
         };
         let t = Banded::run(&self.ctx, tile, samples, input, None, None);
         RenderTile {
@@ -1476,12 +1517,37 @@ pub fn film_moments(film: &Film) -> Vec<PixelMoments> {
 }
 
 /// What a tile of a phase is rendered with, besides its rectangle and samples: the phase,
-/// the coefficient table (render phase) and the whole image's surrogate (training).
+/// the coefficient table (render phase), the whole image's surrogate (training) and which of
+/// the tile's pixels get the samples.
 #[derive(Clone, Copy)]
 struct PhaseInput<'a> {
     kind: PhaseKind,
     table: Option<&'a CoefficientTable>,
     surrogate: Option<&'a [f64]>,
+    pixels: Pixels,
+}
+
+/// Which pixels of a tile a pass renders (the others keep their film as it was): the split-half
+/// check's pixels ([`split_checked`]) are recorded first, so that a tile the check drops traces
+/// its other pixels' training samples as `path` (see [`CvJob::train_tile`]).
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+enum Pixels {
+    /// Every pixel.
+    All,
+    /// Only the pixels [`split_half_gain`] reads.
+    Checked,
+    /// Every pixel but those.
+    Unchecked,
+}
+
+impl Pixels {
+    fn includes(self, x: u32, y: u32) -> bool {
+        match self {
+            Pixels::All => true,
+            Pixels::Checked => split_checked(x, y),
+            Pixels::Unchecked => !split_checked(x, y),
+        }
+    }
 }
 
 /// Rows of the bands a tile of any phase is rendered in: the bands of a tile run in
@@ -1720,6 +1786,11 @@ fn image_variance(film: &Film, image_width: u32, surrogate: Option<&[f64]>) -> f
 /// its pixels twice, and a whole tile's worth would cost as much as the job's solve phase.
 const SPLIT_CHECK_STRIDE: u32 = 8;
 
+/// Whether pixel `(x, y)` enters [`split_half_gain`] (see [`SPLIT_CHECK_STRIDE`]).
+fn split_checked(x: u32, y: u32) -> bool {
+    (x + 3 * y).is_multiple_of(SPLIT_CHECK_STRIDE)
+}
+
 /// The split-half check of an `optimal_mis` training tile: the fraction of the squared
 /// difference between the two halves' pixel estimates that the fits remove, each half's CV
 /// fitted on the other half's samples (cross-fitting: no in-sample optimism), weighted per
@@ -1767,7 +1838,7 @@ fn split_half_gain(
     let mut any = false;
     for y in film.y0..film.y0 + film.height {
         for x in film.x0..film.x0 + film.width {
-            if (x + 3 * y) % SPLIT_CHECK_STRIDE != 0 {
+            if !split_checked(x, y) {
                 continue;
             }
             let (pa, pt) = (first.pixel(x, y), film.pixel(x, y));
@@ -1842,6 +1913,7 @@ fn run_tile(
         kind,
         table,
         surrogate,
+        pixels,
     } = input;
     let rs = ctx.rs;
     let st = &ctx.st;
@@ -1856,6 +1928,10 @@ fn run_tile(
     let plain_path = traces_as_path(ctx, kind, table);
     for y in tile.y0..tile.y0 + tile.height {
         for x in tile.x0..tile.x0 + tile.width {
+            if !pixels.includes(x, y) {
+                i += 1;
+                continue;
+            }
             let pixel = y * rs.width + x;
             let sur = surrogate.map(|s| s[pixel as usize]);
             let mut rejected = 0u64;
@@ -2310,6 +2386,7 @@ mod tests {
             kind: PhaseKind::Apply,
             table: Some(&table),
             surrogate: None,
+            pixels: Pixels::All,
         };
         let banded = Banded::run(&job.ctx, tile, render.clone(), input, None, None);
         for threads in [1, 3] {
