@@ -1309,7 +1309,23 @@ impl<'a> CvJob<'a> {
             surrogate: None,
             pixels,
         };
-        let (mut cells, t) = record(samples.start..probe_end, None, Pixels::All);
+        // `optimal_mis` records its two halves apart, for the split-half check (always, so the
+        // bits do not depend on whether `min_split_gain` is set).
+        let halves =
+            self.ctx.kind == Kind::OptimalMis && samples.len() >= 2 * TRAIN_PROBE_SPP as usize;
+        // With the check, the pixels it reads record all their training samples first. A tile
+        // it drops traces its other pixels' training samples as `path`, so it pays the records
+        // of one pixel in `SPLIT_CHECK_STRIDE` only; a tile it keeps records the others in the
+        // same three passes (probe, first half, second half), so every pixel's cells and film
+        // are added in the same passes whether the check runs or not (cells are pixels: no two
+        // sets share one).
+        let check = self.ctx.min_split_gain.filter(|_| halves);
+        let set = if check.is_some() {
+            Pixels::Checked
+        } else {
+            Pixels::All
+        };
+        let (mut cells, t) = record(samples.start..probe_end, None, set);
         let (mut film, mut rays) = (t.film, t.rays);
         let (mut stopped, mut dropped) = (false, false);
         if split {
@@ -1323,7 +1339,19 @@ impl<'a> CvJob<'a> {
                 );
                 stopped = probe.solve(&probe_policy(policy), 1).switched_off.is_some();
                 if stopped {
-                    // The rest as `path`.
+                    // The rest as `path` (and the probe of the pixels it did not record).
+                    if set == Pixels::Checked {
+                        let probe = samples.start..probe_end;
+                        let r = Banded::run(
+                            &self.ctx,
+                            tile,
+                            probe,
+                            plain(Pixels::Unchecked),
+                            None,
+                            Some(&film),
+                        );
+                        (film, rays) = (r.film, rays + r.rays);
+                    }
                     let r =
                         Banded::run(&self.ctx, tile, rest, plain(Pixels::All), None, Some(&film));
                     return Ok(TrainTile {
@@ -1337,10 +1365,6 @@ impl<'a> CvJob<'a> {
                     });
                 }
             }
-            // `optimal_mis` records its two halves apart, for the split-half check (always,
-            // so the bits do not depend on whether `min_split_gain` is set).
-            let halves =
-                self.ctx.kind == Kind::OptimalMis && samples.len() >= 2 * TRAIN_PROBE_SPP as usize;
             let mid = if halves {
                 samples.start + samples.len() as u32 / 2
             } else {
@@ -1359,17 +1383,6 @@ impl<'a> CvJob<'a> {
                 let (second, r) = record(mid..samples.end, Some(&film), pixels);
                 (first, film, second, r.film, rays + r.rays)
             };
-            // With the check, the pixels it reads record their halves first. A tile it drops
-            // traces its other pixels' training samples as `path`, so it pays the records of
-            // one pixel in `SPLIT_CHECK_STRIDE` only; a tile it keeps records the others in
-            // the same two passes, so every pixel's cells and film are added in the same
-            // passes whether the check runs or not (cells are pixels: no two sets share one).
-            let check = self.ctx.min_split_gain.filter(|_| halves);
-            let set = if check.is_some() {
-                Pixels::Checked
-            } else {
-                Pixels::All
-            };
             let (first, first_film, second, f, r) = halves_of(set, film);
             (film, rays) = (f, rays + r);
             if let Some(c) = first {
@@ -1381,11 +1394,10 @@ impl<'a> CvJob<'a> {
             });
             if dropped {
                 cells = TileCells::default();
-                let rest = probe_end..samples.end;
                 let r = Banded::run(
                     &self.ctx,
                     tile,
-                    rest,
+                    samples.clone(),
                     plain(Pixels::Unchecked),
                     None,
                     Some(&film),
@@ -1394,6 +1406,10 @@ impl<'a> CvJob<'a> {
             } else {
                 cells.absorb(second, &self.ctx);
                 if check.is_some() {
+                    let probe = samples.start..probe_end;
+                    let (c, r) = record(probe, Some(&film), Pixels::Unchecked);
+                    (film, rays) = (r.film, rays + r.rays);
+                    cells.absorb(c, &self.ctx);
                     let (first, _, second, f, r) = halves_of(Pixels::Unchecked, film);
                     (film, rays) = (f, rays + r);
                     if let Some(c) = first {
