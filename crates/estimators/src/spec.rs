@@ -93,12 +93,12 @@ impl PhaseSamples {
 ///
 /// | parameter | type | default | meaning |
 /// |---|---|---|---|
-/// | `spe` | u32 | 16 | samples per estimate (per vertex gather), ≥ 1 |
+/// | `spe` | u32 | 16 | samples per estimate (per vertex gather), ≥ 2; with fewer than two per mixture component a vertex's estimate is the plain deterministic mixture (`estimators::ocv::MIN_SAMPLES_PER_COMPONENT`) |
 /// | `lambda` | f64 | 1.0 | ridge penalty λ [Fan eq. 11] |
 /// | `bsdf_share` | f64 | 0.5 | mixture weight α of the BSDF component (the rest is split equally among the light components), in [0, 1] |
 /// | `penalize_intercept` | bool | false | literal [Fan eq. 11]: also penalise β0 (shrinks each estimate by ≈ λ/(N+λ); see [`crate::ocv`]) |
 /// | `optimize` | bool | true | false: plain deterministic-mixture estimate [Fan eq. 6] (Fan's MIS baseline) |
-/// | `max_light_components` | u32 | 16 | with more lights than this, all lights form **one** component sampled by the light selection (Fan §7's advice for many lights) |
+/// | `max_light_components` | u32 | 16 | with more lights than this, or fewer than two `spe` per light and BSDF component, all lights form **one** component sampled by the light selection (Fan §7's advice for many lights) |
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct OcvOptions {
@@ -142,8 +142,13 @@ impl OcvOptions {
 
     /// Checks the ranges; returns the offending field and why.
     pub fn validate(&self) -> Result<(), (&'static str, &'static str)> {
-        if self.spe == 0 {
-            return Err(("spe", "must be ≥ 1"));
+        if self.spe < 2 {
+            // A deterministic mixture [Fan §4] of one sample is the BSDF sample alone: the
+            // lights would be found by BSDF hits only.
+            return Err((
+                "spe",
+                "must be ≥ 2 (one BSDF and one light sample per estimate at least)",
+            ));
         }
         if !(self.lambda >= 0.0 && self.lambda.is_finite()) {
             return Err(("lambda", "must be finite and ≥ 0"));

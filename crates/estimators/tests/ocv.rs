@@ -213,3 +213,22 @@ fn ocv_rejects_bad_samples_and_inputs() {
         }
     }
 }
+
+/// Fewer than two samples per mixture component (3 components here): the plain estimate, with
+/// no fit attempted; from `2m` samples on, the fit.
+#[test]
+fn ocv_needs_two_samples_per_component() {
+    use estimators::ocv::MIN_SAMPLES_PER_COMPONENT;
+    let need = MIN_SAMPLES_PER_COMPONENT * 3;
+    for n in [2, 4, need - 1] {
+        let (v, p, m) = draw(n, 11);
+        let r = ocv_estimate(&v, &p, &m, &OcvOptions::default()).unwrap();
+        assert!(r.fallback && r.condition.is_nan(), "{n} samples: {r:?}");
+        assert_eq!(r.estimate, r.plain);
+        assert!(r.beta.iter().all(|b| *b == [0.0; 3]));
+    }
+    let (v, p, m) = draw(need, 11);
+    let r = ocv_estimate(&v, &p, &m, &OcvOptions::default()).unwrap();
+    assert!(!r.fallback && r.condition.is_finite(), "{r:?}");
+    assert!(r.estimate != r.plain);
+}

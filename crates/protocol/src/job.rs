@@ -739,9 +739,11 @@ mod tests {
             (e.code, e.field.as_str()),
             ("invalid_spec", "estimator.grid_resolution")
         );
-        let s = spec(serde_json::json!({"estimator": {"kind": "ocv", "spe": 0}})).unwrap();
-        let e = s.resolve(&scene(), &Limits::default()).unwrap_err();
-        assert_eq!(e.field, "estimator.spe");
+        for spe in [0, 1] {
+            let s = spec(serde_json::json!({"estimator": {"kind": "ocv", "spe": spe}})).unwrap();
+            let e = s.resolve(&scene(), &Limits::default()).unwrap_err();
+            assert_eq!(e.field, "estimator.spe");
+        }
         for kind in ["ocv", "cms", "per_light_cv", "optimal_mis"] {
             let s = spec(serde_json::json!({"estimator": {"kind": kind}})).unwrap();
             assert!(s.estimator.is_supported());

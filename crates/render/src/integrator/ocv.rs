@@ -46,6 +46,7 @@ use crate::accel::Hit;
 use crate::bsdf::Bsdf;
 use crate::math::{Frame, Ray};
 use crate::sampler::Sampler;
+use estimators::ocv::MIN_SAMPLES_PER_COMPONENT;
 
 pub use estimators::spec::OcvOptions;
 
@@ -88,7 +89,12 @@ impl Scratch {
         if n_lights == 0 {
             return s;
         }
-        let per_light = n_lights <= opts.max_light_components as usize;
+        // One component per light only when the gather can give each of them, and the BSDF,
+        // the samples a fit needs (`MIN_SAMPLES_PER_COMPONENT`): else a light would get none
+        // (reached by BSDF hits alone) or too few, and all lights form one component sampled
+        // by the light selection, as with more lights than `max_light_components` [Fan §7].
+        let per_light = n_lights <= opts.max_light_components as usize
+            && opts.spe as usize >= MIN_SAMPLES_PER_COMPONENT * (n_lights + 1);
         let mut comps = vec![Component::Bsdf];
         let mut weights = vec![opts.bsdf_share];
         let light_share = 1.0 - opts.bsdf_share;
