@@ -594,6 +594,44 @@ fn train_on_threads(
         .unwrap()
 }
 
+/// Training tile `tile` of `scene` under `estimator` (40 spp, seed 2, depth 5; a flat 0.5
+/// surrogate where the estimator needs one) on `threads` threads, and its training spp.
+fn train_tile_of(
+    scene: &scene::Scene,
+    estimator: Estimator,
+    tile: render::TileRect,
+    threads: usize,
+) -> (render::integrator::cv::TrainTile, u32) {
+    use render::integrator::cv::CvJob;
+    use render::{RenderScene, RenderSettings};
+    let st = RenderSettings {
+        spp: 40,
+        seed: 2,
+        max_depth: 5,
+        estimator,
+        ..RenderSettings::from_scene(scene)
+    };
+    let rs = RenderScene::new(scene, &st).unwrap();
+    let job = CvJob::new(&rs, &st).unwrap().expect("a phased estimator");
+    let range = job.phases().train.clone();
+    let n = (scene.film.width * scene.film.height) as usize;
+    let surrogate = job.needs_surrogate().then(|| vec![0.5; n]);
+    let t = train_on_threads(&job, tile, &range, surrogate.as_deref(), threads);
+    (t, range.len() as u32)
+}
+
+/// A training tile's table encoding and its film's sums as bit patterns.
+fn tile_bits(t: &render::integrator::cv::TrainTile) -> (Vec<u8>, Vec<u64>) {
+    let film = t
+        .out
+        .film
+        .pixels
+        .iter()
+        .flat_map(|q| q.sum.map(f64::to_bits))
+        .collect();
+    (t.cells.encode(), film)
+}
+
 /// A training tile probes its own fits after `TRAIN_PROBE_SPP` samples per pixel: on the
 /// Cornell box (fits that only separate the techniques) it stops recording and traces the
 /// rest as `path`, reporting only the probe's samples, while its film still holds every
@@ -602,8 +640,8 @@ fn train_on_threads(
 #[test]
 fn a_training_tile_whose_own_fits_cannot_pay_records_only_its_probe() {
     use estimators::table::AccumulatorTable;
-    use render::integrator::cv::{CvJob, TRAIN_PROBE_SPP, TrainTile};
-    use render::{RenderScene, RenderSettings, TileRect};
+    use render::TileRect;
+    use render::integrator::cv::{TRAIN_PROBE_SPP, TrainTile};
 
     let tile = TileRect {
         x0: 0,
@@ -611,36 +649,14 @@ fn a_training_tile_whose_own_fits_cannot_pay_records_only_its_probe() {
         width: 64,
         height: 64,
     };
-    let train = |rel: &str, o: CmsOptions, threads: usize| -> (TrainTile, u32) {
-        let s = load(rel, 64, 64);
-        let st = RenderSettings {
-            spp: 40,
-            seed: 2,
-            max_depth: 5,
-            estimator: Estimator::Cms(o),
-            ..RenderSettings::from_scene(&s)
-        };
-        let rs = RenderScene::new(&s, &st).unwrap();
-        let job = CvJob::new(&rs, &st).unwrap().expect("a phased estimator");
-        let range = job.phases().train.clone();
-        let surrogate = job.needs_surrogate().then(|| vec![0.5; 64 * 64]);
-        let t = train_on_threads(&job, tile, &range, surrogate.as_deref(), threads);
-        (t, range.len() as u32)
+    let train = |rel: &str, o: CmsOptions, threads: usize| {
+        train_tile_of(&load(rel, 64, 64), Estimator::Cms(o), tile, threads)
     };
     let samples = |t: &TrainTile| match &t.cells {
         AccumulatorTable::Moments(m, _) => m.values().map(|a| a.samples()).sum::<u64>(),
         AccumulatorTable::Mean(..) => panic!("moments"),
     };
-    let bits = |t: &TrainTile| {
-        let film: Vec<u64> = t
-            .out
-            .film
-            .pixels
-            .iter()
-            .flat_map(|q| q.sum.map(f64::to_bits))
-            .collect();
-        (t.cells.encode(), film)
-    };
+    let bits = tile_bits;
     let always = CmsOptions {
         min_image_gain: None,
         min_fit_gain: None,
@@ -684,8 +700,8 @@ fn a_training_tile_whose_own_fits_cannot_pay_records_only_its_probe() {
 #[test]
 fn an_optimal_mis_tile_records_its_checked_pixels_first() {
     use estimators::table::AccumulatorTable;
-    use render::integrator::cv::{CvJob, TrainTile};
-    use render::{RenderScene, RenderSettings, TileRect};
+    use render::TileRect;
+    use render::integrator::cv::TrainTile;
 
     let (w, h) = (64u32, 48u32);
     let tile = TileRect {
@@ -695,32 +711,10 @@ fn an_optimal_mis_tile_records_its_checked_pixels_first() {
         height: h,
     };
     let veach = load("scenes/veach-mis/scene.json", w, h);
-    let train = |o: OptimalMisOptions, threads: usize| -> (TrainTile, u32) {
-        let st = RenderSettings {
-            spp: 40,
-            seed: 2,
-            max_depth: 5,
-            estimator: Estimator::OptimalMis(o),
-            ..RenderSettings::from_scene(&veach)
-        };
-        let rs = RenderScene::new(&veach, &st).unwrap();
-        let job = CvJob::new(&rs, &st).unwrap().expect("a phased estimator");
-        let range = job.phases().train.clone();
-        (
-            train_on_threads(&job, tile, &range, None, threads),
-            range.len() as u32,
-        )
+    let train = |o: OptimalMisOptions, threads: usize| {
+        train_tile_of(&veach, Estimator::OptimalMis(o), tile, threads)
     };
-    let bits = |t: &TrainTile| {
-        let film: Vec<u64> = t
-            .out
-            .film
-            .pixels
-            .iter()
-            .flat_map(|q| q.sum.map(f64::to_bits))
-            .collect();
-        (t.cells.encode(), film)
-    };
+    let bits = tile_bits;
     let cells = |t: &TrainTile| match &t.cells {
         AccumulatorTable::Moments(m, _) => m.len(),
         AccumulatorTable::Mean(..) => panic!("moments"),
