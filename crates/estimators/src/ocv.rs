@@ -42,11 +42,11 @@
 use nalgebra::DMatrix;
 use thiserror::Error;
 
+use crate::cell::CHANNELS;
+
 /// Fewest valid samples per mixture component for which [`ocv_estimate`] fits the CV (see
 /// the module contracts); with fewer it returns the plain estimate.
 pub const MIN_SAMPLES_PER_COMPONENT: usize = 2;
-
-use crate::cell::CHANNELS;
 
 /// Options of the OCV fit.
 #[derive(Clone, Copy, Debug, PartialEq)]

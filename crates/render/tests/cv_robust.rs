@@ -692,11 +692,12 @@ fn a_training_tile_whose_own_fits_cannot_pay_records_only_its_probe() {
 }
 
 /// An `optimal_mis` training tile records all the training samples of its split-half check's
-/// pixels (one in 8) first and decides on them: a tile the check drops (veach-mis) traces its other pixels' training
-/// samples as `path`, without records, so those pixels hold every training sample and agree
-/// with the recorded run up to rounding while the checked pixels keep its bits and no cell is
-/// reported; a tile the check keeps records the other pixels in the same passes, with the
-/// bits of a job without the check. Both independent of the thread count.
+/// pixels (one in 8) first and decides on them: a tile the check drops (veach-mis) traces its
+/// other pixels' training samples as `path`, without records, so those pixels hold every
+/// training sample and agree with the recorded run up to rounding while the checked pixels
+/// keep its bits and no cell is reported; a tile the check keeps records the other pixels in
+/// the same passes, with the bits of a job without the check. Both independent of the thread
+/// count.
 #[test]
 fn an_optimal_mis_tile_records_its_checked_pixels_first() {
     use estimators::table::AccumulatorTable;

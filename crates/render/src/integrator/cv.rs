@@ -1339,19 +1339,10 @@ impl<'a> CvJob<'a> {
                 );
                 stopped = probe.solve(&probe_policy(policy), 1).switched_off.is_some();
                 if stopped {
-                    // The rest as `path` (and the probe of the pixels it did not record).
-                    if set == Pixels::Checked {
-                        let probe = samples.start..probe_end;
-                        let r = Banded::run(
-                            &self.ctx,
-                            tile,
-                            probe,
-                            plain(Pixels::Unchecked),
-                            None,
-                            Some(&film),
-                        );
-                        (film, rays) = (r.film, rays + r.rays);
-                    }
+                    // The rest as `path`. The probe covered every pixel: only `optimal_mis`
+                    // has the split check, and its policy sets no table minimum
+                    // (`PhasedEstimator::solve_policy`), so the probe never decides there.
+                    debug_assert_eq!(set, Pixels::All);
                     let r =
                         Banded::run(&self.ctx, tile, rest, plain(Pixels::All), None, Some(&film));
                     return Ok(TrainTile {
@@ -1370,24 +1361,22 @@ impl<'a> CvJob<'a> {
             } else {
                 probe_end
             };
-            // The two halves of `pixels` on top of `film`: the first half's cells (none when
-            // the probe is the first half), the film after it, the second half's cells, the
-            // film after both, and their rays.
-            let halves_of = |pixels: Pixels, film: Film| {
-                let (first, film, rays) = if mid > probe_end {
+            // The two halves of `pixels` on top of `film`, the first half's cells added to
+            // `cells` (none when the probe is the first half): the film after the first half,
+            // the second half's cells, the film after both, and their rays.
+            let halves_of = |pixels: Pixels, film: Film, cells: &mut TileCells| {
+                let (film, rays) = if mid > probe_end {
                     let (c, r) = record(probe_end..mid, Some(&film), pixels);
-                    (Some(c), r.film, r.rays)
+                    cells.absorb(c, &self.ctx);
+                    (r.film, r.rays)
                 } else {
-                    (None, film, 0)
+                    (film, 0)
                 };
                 let (second, r) = record(mid..samples.end, Some(&film), pixels);
-                (first, film, second, r.film, rays + r.rays)
+                (film, second, r.film, rays + r.rays)
             };
-            let (first, first_film, second, f, r) = halves_of(set, film);
+            let (first_film, second, f, r) = halves_of(set, film, &mut cells);
             (film, rays) = (f, rays + r);
-            if let Some(c) = first {
-                cells.absorb(c, &self.ctx);
-            }
             dropped = check.is_some_and(|min| {
                 split_half_gain(&self.ctx, &policy, &cells, &second, &first_film, &film)
                     .is_some_and(|g| g < min)
@@ -1410,11 +1399,8 @@ impl<'a> CvJob<'a> {
                     let (c, r) = record(probe, Some(&film), Pixels::Unchecked);
                     (film, rays) = (r.film, rays + r.rays);
                     cells.absorb(c, &self.ctx);
-                    let (first, _, second, f, r) = halves_of(Pixels::Unchecked, film);
+                    let (_, second, f, r) = halves_of(Pixels::Unchecked, film, &mut cells);
                     (film, rays) = (f, rays + r);
-                    if let Some(c) = first {
-                        cells.absorb(c, &self.ctx);
-                    }
                     cells.absorb(second, &self.ctx);
                 }
             }
