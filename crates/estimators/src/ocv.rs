@@ -39,7 +39,6 @@
 //!   worse than `path` at equal spp, `spe` 4 2.8× worse than its own plain estimate. The rule
 //!   depends on `N` and `m` only, never on the values, so it adds no bias.
 
-use nalgebra::DMatrix;
 use thiserror::Error;
 
 use crate::cell::CHANNELS;
@@ -108,143 +107,305 @@ pub struct OcvResult {
 
 /// OCV estimate from `N` samples: `values[i] = f(X_i)` (RGB), `component_pdfs` row-major
 /// `N × m` with `p_j(X_i)`, `mixture` the weights `α_j` (normalised internally).
+///
+/// A convenience over [`OcvSolver::fit`] that allocates its buffers and the `β` list; the
+/// renderer calls the solver, which reuses its buffers.
 pub fn ocv_estimate(
     values: &[[f64; CHANNELS]],
     component_pdfs: &[f64],
     mixture: &[f64],
     options: &OcvOptions,
 ) -> Result<OcvResult, OcvError> {
+    let mut solver = OcvSolver::default();
+    let fit = solver.fit(values, component_pdfs, mixture, options)?;
     let m = mixture.len();
-    if m == 0 {
-        return Err(OcvError::NoComponents);
-    }
-    if component_pdfs.len() != values.len() * m {
-        return Err(OcvError::SizeMismatch);
-    }
-    let total: f64 = mixture.iter().sum();
-    if mixture.iter().any(|a| !a.is_finite() || *a < 0.0) || !(total > 0.0) {
-        return Err(OcvError::BadMixture);
-    }
-    // Unknowns: β0 and β_1..β_{m-1}.
-    let q = m;
-    let mut xtx = DMatrix::<f64>::zeros(q, q);
-    let mut xty = DMatrix::<f64>::zeros(q, CHANNELS);
-    let mut row = vec![0.0; q];
-    let (mut n, mut rejected) = (0usize, 0usize);
-    let mut sum_y = [0.0; CHANNELS];
-    for (v, pdfs) in values.iter().zip(component_pdfs.chunks_exact(m)) {
-        let p: f64 = pdfs.iter().zip(mixture).map(|(pj, a)| pj * a / total).sum();
-        let valid = v.iter().all(|x| x.is_finite())
-            && pdfs.iter().all(|x| x.is_finite() && *x >= 0.0)
-            && p > 0.0
-            && p.is_finite();
-        if !valid {
-            rejected += 1;
-            continue;
-        }
-        let y = v.map(|f| f / p);
-        if y.iter().any(|x| !x.is_finite()) {
-            rejected += 1;
-            continue;
-        }
-        row[0] = 1.0;
-        for j in 1..q {
-            row[j] = pdfs[j - 1] / p;
-        }
-        for a in 0..q {
-            for b in a..q {
-                xtx[(a, b)] += row[a] * row[b];
+    Ok(OcvResult {
+        estimate: fit.estimate,
+        beta0: fit.beta0,
+        beta: (0..m).map(|j| solver.beta(j)).collect(),
+        condition: fit.condition,
+        fallback: fit.fallback,
+        rejected: fit.rejected,
+        plain: fit.plain,
+    })
+}
+
+/// The scalars of one OCV fit ([`OcvSolver::fit`]); the `β_j` are read with
+/// [`OcvSolver::beta`]. Fields as in [`OcvResult`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct OcvFit {
+    /// `β0 + Σ β_j` per channel [Fan eq. 10] (or the plain estimate on fallback).
+    pub estimate: [f64; CHANNELS],
+    /// Intercept `β0` per channel.
+    pub beta0: [f64; CHANNELS],
+    /// Condition estimate (see [`OcvResult::condition`]).
+    pub condition: f64,
+    /// True when the plain estimate was returned.
+    pub fallback: bool,
+    /// Samples skipped as invalid.
+    pub rejected: usize,
+    /// The plain deterministic-mixture estimate `mean(y)` [Fan eq. 6].
+    pub plain: [f64; CHANNELS],
+}
+
+/// The OCV fit with reusable buffers: after the first fit of a given component count it
+/// allocates nothing, which matters at one fit per shading point (`ocv` jobs fit at every
+/// vertex of every camera sample).
+#[derive(Clone, Debug, Default)]
+pub struct OcvSolver {
+    /// Normalised mixture weights `α_j / Σα`.
+    alpha: Vec<f64>,
+    /// Normal matrix, `q × q` row-major; after the fit its lower triangle holds the Cholesky
+    /// factor of the Jacobi-scaled matrix.
+    xtx: Vec<f64>,
+    /// Right-hand sides `q × CHANNELS`; after the fit the scaled solution.
+    xty: Vec<f64>,
+    /// One regressor row `(1, x_i1, …, x_i,m−1)`.
+    row: Vec<f64>,
+    /// Jacobi scale `1/√A_aa`.
+    scale: Vec<f64>,
+    /// Whether the last fit solved the system (else every `β_j` is 0).
+    solved: bool,
+}
+
+/// The per-sample sums of one fit.
+struct Sums {
+    n: usize,
+    rejected: usize,
+    sum_y: [f64; CHANNELS],
+}
+
+/// Largest component count [`OcvSolver::accumulate`] keeps its regressor row on the stack for.
+const STACK_ROW: usize = 6;
+
+impl OcvSolver {
+    /// Adds every valid sample's regressor row to the upper triangle of `XᵀX` and to `Xᵀy`
+    /// (buffers sized by [`fit`](Self::fit)). `Q` is the component count, or 0 for "read it
+    /// from the buffers" (any count).
+    fn accumulate<const Q: usize>(
+        &mut self,
+        values: &[[f64; CHANNELS]],
+        component_pdfs: &[f64],
+    ) -> Sums {
+        let q = if Q == 0 { self.alpha.len() } else { Q };
+        debug_assert_eq!(q, self.alpha.len());
+        let mut stack_row = [0.0f64; STACK_ROW];
+        let row: &mut [f64] = if Q == 0 {
+            &mut self.row[..q]
+        } else {
+            &mut stack_row[..q]
+        };
+        let alpha = &self.alpha[..q];
+        let xtx = &mut self.xtx[..q * q];
+        let xty = &mut self.xty[..q * CHANNELS];
+        let (mut n, mut rejected) = (0usize, 0usize);
+        let mut sum_y = [0.0; CHANNELS];
+        for (v, pdfs) in values.iter().zip(component_pdfs.chunks_exact(q)) {
+            let p: f64 = pdfs.iter().zip(alpha).map(|(pj, a)| pj * a).sum();
+            let valid = v.iter().all(|x| x.is_finite())
+                && pdfs.iter().all(|x| x.is_finite() && *x >= 0.0)
+                && p > 0.0
+                && p.is_finite();
+            if !valid {
+                rejected += 1;
+                continue;
+            }
+            let y = v.map(|f| f / p);
+            if y.iter().any(|x| !x.is_finite()) {
+                rejected += 1;
+                continue;
+            }
+            row[0] = 1.0;
+            for (r, pj) in row[1..].iter_mut().zip(pdfs) {
+                *r = pj / p;
+            }
+            // Upper triangle only; mirrored by the caller.
+            for a in 0..q {
+                let ra = row[a];
+                for (x, rb) in xtx[a * q + a..(a + 1) * q].iter_mut().zip(&row[a..]) {
+                    *x += ra * rb;
+                }
+                for (x, yc) in xty[a * CHANNELS..(a + 1) * CHANNELS].iter_mut().zip(&y) {
+                    *x += ra * yc;
+                }
             }
             for ch in 0..CHANNELS {
-                xty[(a, ch)] += row[a] * y[ch];
+                sum_y[ch] += y[ch];
+            }
+            n += 1;
+        }
+        Sums { n, rejected, sum_y }
+    }
+
+    /// `β_j` of the last [`fit`](Self::fit) per channel; 0 for the dropped last component,
+    /// for `j` out of range and after a fallback.
+    pub fn beta(&self, j: usize) -> [f64; CHANNELS] {
+        let q = self.scale.len();
+        if !self.solved || j + 1 >= q {
+            return [0.0; CHANNELS];
+        }
+        let a = j + 1;
+        std::array::from_fn(|ch| self.xty[a * CHANNELS + ch] * self.scale[a])
+    }
+
+    /// Fits the OCV to one gather's samples (arguments and contracts as [`ocv_estimate`]).
+    pub fn fit(
+        &mut self,
+        values: &[[f64; CHANNELS]],
+        component_pdfs: &[f64],
+        mixture: &[f64],
+        options: &OcvOptions,
+    ) -> Result<OcvFit, OcvError> {
+        self.solved = false;
+        let m = mixture.len();
+        if m == 0 {
+            return Err(OcvError::NoComponents);
+        }
+        if component_pdfs.len() != values.len() * m {
+            return Err(OcvError::SizeMismatch);
+        }
+        let total: f64 = mixture.iter().sum();
+        if mixture.iter().any(|a| !a.is_finite() || *a < 0.0) || !(total > 0.0) {
+            return Err(OcvError::BadMixture);
+        }
+        // Unknowns: β0 and β_1..β_{m-1}.
+        let q = m;
+        self.alpha.clear();
+        self.alpha.extend(mixture.iter().map(|a| a / total));
+        self.xtx.clear();
+        self.xtx.resize(q * q, 0.0);
+        self.xty.clear();
+        self.xty.resize(q * CHANNELS, 0.0);
+        self.row.clear();
+        self.row.resize(q, 0.0);
+        self.scale.clear();
+        self.scale.resize(q, 0.0);
+        // The per-sample sums are the hot loop (one fit per shading point): compiled for
+        // each small component count so that its loops unroll, generic above.
+        let sums = match m {
+            1 => self.accumulate::<1>(values, component_pdfs),
+            2 => self.accumulate::<2>(values, component_pdfs),
+            3 => self.accumulate::<3>(values, component_pdfs),
+            4 => self.accumulate::<4>(values, component_pdfs),
+            5 => self.accumulate::<5>(values, component_pdfs),
+            6 => self.accumulate::<6>(values, component_pdfs),
+            _ => self.accumulate::<0>(values, component_pdfs),
+        };
+        let Sums { n, rejected, sum_y } = sums;
+        let (xtx, xty) = (&mut self.xtx, &mut self.xty);
+        if n == 0 {
+            return Err(OcvError::NoSamples);
+        }
+        let plain = sum_y.map(|s| s / n as f64);
+        let fallback = |condition: f64| OcvFit {
+            estimate: plain,
+            beta0: plain,
+            condition,
+            fallback: true,
+            rejected,
+            plain,
+        };
+        if n < MIN_SAMPLES_PER_COMPONENT * m {
+            return Ok(fallback(f64::NAN));
+        }
+        let lambda = if options.lambda.is_finite() {
+            options.lambda.max(0.0)
+        } else {
+            0.0
+        };
+        for a in 0..q {
+            for b in 0..a {
+                xtx[a * q + b] = xtx[b * q + a];
+            }
+            if a > 0 || options.penalize_intercept {
+                xtx[a * q + a] += lambda;
             }
         }
+        // Jacobi scaling for the factorisation and the condition estimate; a zero diagonal
+        // (a component never nonzero and λ = 0) cannot be fitted.
+        let scale = &mut self.scale;
+        for a in 0..q {
+            let d = xtx[a * q + a];
+            if !(d > 0.0) || !d.is_finite() {
+                return Ok(fallback(f64::INFINITY));
+            }
+            scale[a] = 1.0 / d.sqrt();
+        }
+        for a in 0..q {
+            for b in 0..q {
+                xtx[a * q + b] *= scale[a] * scale[b];
+            }
+            for ch in 0..CHANNELS {
+                xty[a * CHANNELS + ch] *= scale[a];
+            }
+        }
+        // Cholesky `A = L Lᵀ` in place (lower triangle); a non-positive pivot means the
+        // matrix is not numerically positive definite.
+        for j in 0..q {
+            let mut d = xtx[j * q + j];
+            for k in 0..j {
+                d -= xtx[j * q + k] * xtx[j * q + k];
+            }
+            if !(d > 0.0) || !d.is_finite() {
+                return Ok(fallback(f64::INFINITY));
+            }
+            let ljj = d.sqrt();
+            xtx[j * q + j] = ljj;
+            for i in j + 1..q {
+                let mut s = xtx[i * q + j];
+                for k in 0..j {
+                    s -= xtx[i * q + k] * xtx[j * q + k];
+                }
+                xtx[i * q + j] = s / ljj;
+            }
+        }
+        let (lo, hi) = (0..q).fold((f64::INFINITY, 0.0f64), |(lo, hi), a| {
+            let d = xtx[a * q + a];
+            (lo.min(d * d), hi.max(d * d))
+        });
+        let condition = if lo > 0.0 { hi / lo } else { f64::INFINITY };
+        if !(condition <= options.max_condition) {
+            return Ok(fallback(condition));
+        }
+        // Forward `L z = b`, then back `Lᵀ x = z`, all channels at once, in place.
+        for i in 0..q {
+            for ch in 0..CHANNELS {
+                let mut s = xty[i * CHANNELS + ch];
+                for k in 0..i {
+                    s -= xtx[i * q + k] * xty[k * CHANNELS + ch];
+                }
+                xty[i * CHANNELS + ch] = s / xtx[i * q + i];
+            }
+        }
+        for i in (0..q).rev() {
+            for ch in 0..CHANNELS {
+                let mut s = xty[i * CHANNELS + ch];
+                for k in i + 1..q {
+                    s -= xtx[k * q + i] * xty[k * CHANNELS + ch];
+                }
+                xty[i * CHANNELS + ch] = s / xtx[i * q + i];
+            }
+        }
+        let mut beta0 = [0.0; CHANNELS];
+        let mut estimate = [0.0; CHANNELS];
         for ch in 0..CHANNELS {
-            sum_y[ch] += y[ch];
+            beta0[ch] = xty[ch] * scale[0];
+            estimate[ch] = beta0[ch];
+            for j in 1..q {
+                estimate[ch] += xty[j * CHANNELS + ch] * scale[j];
+            }
         }
-        n += 1;
-    }
-    if n == 0 {
-        return Err(OcvError::NoSamples);
-    }
-    let plain = sum_y.map(|s| s / n as f64);
-    let fallback = |condition: f64| OcvResult {
-        estimate: plain,
-        beta0: plain,
-        beta: vec![[0.0; CHANNELS]; m],
-        condition,
-        fallback: true,
-        rejected,
-        plain,
-    };
-    if n < MIN_SAMPLES_PER_COMPONENT * m {
-        return Ok(fallback(f64::NAN));
-    }
-    let lambda = if options.lambda.is_finite() {
-        options.lambda.max(0.0)
-    } else {
-        0.0
-    };
-    for a in 0..q {
-        for b in 0..a {
-            xtx[(a, b)] = xtx[(b, a)];
+        if estimate.iter().any(|e| !e.is_finite()) {
+            return Ok(fallback(condition));
         }
-        if a > 0 || options.penalize_intercept {
-            xtx[(a, a)] += lambda;
-        }
+        self.solved = true;
+        Ok(OcvFit {
+            estimate,
+            beta0,
+            condition,
+            fallback: false,
+            rejected,
+            plain,
+        })
     }
-    // Jacobi scaling for the factorisation and the condition estimate; a zero diagonal
-    // (a component never nonzero and λ = 0) cannot be fitted.
-    let mut scale = vec![0.0; q];
-    for a in 0..q {
-        let d = xtx[(a, a)];
-        if !(d > 0.0) || !d.is_finite() {
-            return Ok(fallback(f64::INFINITY));
-        }
-        scale[a] = 1.0 / d.sqrt();
-    }
-    for a in 0..q {
-        for b in 0..q {
-            xtx[(a, b)] *= scale[a] * scale[b];
-        }
-        for ch in 0..CHANNELS {
-            xty[(a, ch)] *= scale[a];
-        }
-    }
-    let Some(chol) = xtx.cholesky() else {
-        return Ok(fallback(f64::INFINITY));
-    };
-    let l = chol.l_dirty().diagonal();
-    let (lo, hi) = l.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), d| {
-        (lo.min(d * d), hi.max(d * d))
-    });
-    let condition = if lo > 0.0 { hi / lo } else { f64::INFINITY };
-    if !(condition <= options.max_condition) {
-        return Ok(fallback(condition));
-    }
-    let x = chol.solve(&xty);
-    let mut beta0 = [0.0; CHANNELS];
-    let mut beta = vec![[0.0; CHANNELS]; m];
-    let mut estimate = [0.0; CHANNELS];
-    for ch in 0..CHANNELS {
-        beta0[ch] = x[(0, ch)] * scale[0];
-        estimate[ch] = beta0[ch];
-        for j in 1..q {
-            let b = x[(j, ch)] * scale[j];
-            beta[j - 1][ch] = b;
-            estimate[ch] += b;
-        }
-    }
-    if estimate.iter().any(|e| !e.is_finite()) {
-        return Ok(fallback(condition));
-    }
-    Ok(OcvResult {
-        estimate,
-        beta0,
-        beta,
-        condition,
-        fallback: false,
-        rejected,
-        plain,
-    })
 }

@@ -4,7 +4,7 @@ mod common;
 
 use common::{Pdf, mean_var};
 use estimators::mis::deterministic_counts;
-use estimators::ocv::{OcvError, OcvOptions, ocv_estimate};
+use estimators::ocv::{OcvError, OcvOptions, OcvSolver, ocv_estimate};
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 
@@ -231,4 +231,73 @@ fn ocv_needs_two_samples_per_component() {
     let r = ocv_estimate(&v, &p, &m, &OcvOptions::default()).unwrap();
     assert!(!r.fallback && r.condition.is_finite(), "{r:?}");
     assert!(r.estimate != r.plain);
+}
+
+proptest::proptest! {
+    #![proptest_config(proptest::prelude::ProptestConfig::with_cases(64))]
+
+    /// The solver's `β` solve the penalised normal equations `(XᵀX + λD) β = Xᵀy` [Fan eq. 11]
+    /// (checked with an independent LU solve), and a solver reused across fits of other sizes
+    /// gives the bits of a fresh one.
+    #[test]
+    fn ocv_solver_solves_the_normal_equations_and_reuses_its_buffers(
+        m in 1usize..7,
+        extra in 0usize..20,
+        seed in 0u64..1000,
+        lambda in 0.0f64..4.0,
+    ) {
+        let n = 2 * m + extra;
+        let mut rng = Pcg64::seed_from_u64(seed);
+        let values: Vec<[f64; 3]> = (0..n)
+            .map(|_| [rng.random::<f64>(), rng.random::<f64>() * 3.0, rng.random::<f64>() - 0.2])
+            .collect();
+        let pdfs: Vec<f64> = (0..n * m).map(|_| rng.random::<f64>() * 2.0 + 0.05).collect();
+        let mixture: Vec<f64> = (0..m).map(|_| rng.random::<f64>() + 0.1).collect();
+        let options = OcvOptions { lambda, ..OcvOptions::default() };
+        let r = ocv_estimate(&values, &pdfs, &mixture, &options).unwrap();
+        proptest::prop_assume!(!r.fallback);
+
+        // Reuse: a solver that fitted a larger and a smaller problem first.
+        let mut solver = OcvSolver::default();
+        let big: Vec<f64> = (0..n * (m + 2)).map(|i| 0.3 + (i % 7) as f64).collect();
+        let _ = solver.fit(&values, &big, &vec![1.0; m + 2], &options);
+        let _ = solver.fit(&values[..1], &pdfs[..m], &mixture, &options);
+        let fit = solver.fit(&values, &pdfs, &mixture, &options).unwrap();
+        proptest::prop_assert_eq!(fit.estimate, r.estimate);
+        for j in 0..m {
+            proptest::prop_assert_eq!(solver.beta(j), r.beta[j]);
+        }
+
+        // Independent check of the normal equations.
+        let total: f64 = mixture.iter().sum();
+        let mut a = nalgebra::DMatrix::<f64>::zeros(m, m);
+        let mut b = nalgebra::DMatrix::<f64>::zeros(m, 3);
+        for (v, row) in values.iter().zip(pdfs.chunks_exact(m)) {
+            let p: f64 = row.iter().zip(&mixture).map(|(x, w)| x * w / total).sum();
+            let x: Vec<f64> = std::iter::once(1.0).chain(row[..m - 1].iter().map(|x| x / p)).collect();
+            for i in 0..m {
+                for k in 0..m {
+                    a[(i, k)] += x[i] * x[k];
+                }
+                for c in 0..3 {
+                    b[(i, c)] += x[i] * v[c] / p;
+                }
+            }
+        }
+        for i in 1..m {
+            a[(i, i)] += lambda;
+        }
+        let sol = a.clone().lu().solve(&b).unwrap();
+        for c in 0..3 {
+            let scale = sol.column(c).amax().max(1.0);
+            proptest::prop_assert!((sol[(0, c)] - r.beta0[c]).abs() < 1e-7 * scale);
+            for j in 1..m {
+                proptest::prop_assert!(
+                    (sol[(j, c)] - r.beta[j - 1][c]).abs() < 1e-7 * scale,
+                    "β_{} channel {}: {} vs {}", j, c, sol[(j, c)], r.beta[j - 1][c]
+                );
+            }
+            proptest::prop_assert_eq!(r.beta[m - 1][c], 0.0);
+        }
+    }
 }

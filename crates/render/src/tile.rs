@@ -122,6 +122,10 @@ pub fn render_tile_counted(
     }
     let mut film = Film::new_rect(tile.x0, tile.y0, tile.width, tile.height);
     let mut rays = 0u64;
+    let mut ocv_scratch = match &st.estimator {
+        Estimator::Ocv(o) => ocv::Scratch::new(rs, o),
+        _ => ocv::Scratch::default(),
+    };
     for y in tile.y0..tile.y0 + tile.height {
         for x in tile.x0..tile.x0 + tile.width {
             let px = film.pixel_mut(x, y);
@@ -129,7 +133,7 @@ pub fn render_tile_counted(
             for s in samples.clone() {
                 let sample = match st.estimator {
                     Estimator::Path => path::sample_pixel(rs, st, x, y, s),
-                    Estimator::Ocv(o) => ocv::sample_pixel(rs, st, &o, x, y, s),
+                    Estimator::Ocv(o) => ocv::sample_pixel(rs, st, &o, &mut ocv_scratch, x, y, s),
                     // Phased CV estimators need their coefficients (see
                     // `cv::render_estimator_image`); a bare tile renders the baseline.
                     Estimator::Cms(_) | Estimator::PerLightCv(_) | Estimator::OptimalMis(_) => {

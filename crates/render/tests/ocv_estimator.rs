@@ -157,6 +157,7 @@ fn ocv_literal_penalized_intercept_shrinks_every_estimate() {
 /// pixel centre (Fan's variance images, fig. 2): summed over pixels and channels.
 fn gather_variance(rs: &RenderScene, st: &RenderSettings, opts: &OcvOptions, k: u32) -> f64 {
     let mut total = 0.0;
+    let mut scratch = ocv::Scratch::new(rs, opts);
     for y in 0..rs.height {
         for x in 0..rs.width {
             let ray = rs.camera.ray(Vec2::new(x as f32 + 0.5, y as f32 + 0.5));
@@ -164,7 +165,8 @@ fn gather_variance(rs: &RenderScene, st: &RenderSettings, opts: &OcvOptions, k: 
             for i in 0..k {
                 let pixel = y * rs.width + x;
                 let mut sampler = Sampler::new(st.seed, pixel, i);
-                let v = ocv::trace(rs, st, opts, ray, &mut sampler, pixel, i).radiance;
+                let v =
+                    ocv::trace(rs, st, opts, &mut scratch, ray, &mut sampler, pixel, i).radiance;
                 for c in 0..3 {
                     s[c] += f64::from(v[c]);
                     s2[c] += f64::from(v[c]).powi(2);

@@ -61,9 +61,10 @@ enum Component {
     AllLights,
 }
 
-/// Per-camera-sample scratch buffers reused across vertices.
+/// The gather's component layout for one job and its buffers, reused across vertices, camera
+/// samples and pixels (one per tile renderer; [`Scratch::new`] once, then no allocation).
 #[derive(Default)]
-struct Scratch {
+pub struct Scratch {
     /// Active components (count > 0).
     components: Vec<(Component, usize)>,
     /// Light → column in the pdf table (per-light mode), `usize::MAX` if inactive.
@@ -71,6 +72,8 @@ struct Scratch {
     values: Vec<[f64; 3]>,
     pdfs: Vec<f64>,
     mixture: Vec<f64>,
+    /// The OCV fit's buffers.
+    solver: estimators::ocv::OcvSolver,
 }
 
 /// splitmix64 finaliser.
@@ -83,7 +86,7 @@ fn mix64(mut z: u64) -> u64 {
 
 impl Scratch {
     /// Sets up the components and their deterministic counts for this scene and options.
-    fn new(rs: &RenderScene, opts: &OcvOptions) -> Self {
+    pub fn new(rs: &RenderScene, opts: &OcvOptions) -> Self {
         let mut s = Scratch::default();
         let n_lights = rs.lights.len();
         if n_lights == 0 {
@@ -263,7 +266,9 @@ fn gather(
             penalize_intercept: opts.penalize_intercept,
             ..estimators::ocv::OcvOptions::default()
         };
-        estimators::ocv::ocv_estimate(&scratch.values, &scratch.pdfs, &scratch.mixture, &o)
+        scratch
+            .solver
+            .fit(&scratch.values, &scratch.pdfs, &scratch.mixture, &o)
             .ok()
             .map(|r| r.estimate)
     } else {
@@ -307,10 +312,13 @@ fn plain_estimate(values: &[[f64; 3]], pdfs: &[f64], mixture: &[f64]) -> Option<
 }
 
 /// Traces one camera path with OCV direct lighting at each vertex (see the module docs).
+/// `scratch` is [`Scratch::new`] of the same scene and options.
+#[allow(clippy::too_many_arguments)]
 pub fn trace(
     rs: &RenderScene,
     st: &RenderSettings,
     opts: &OcvOptions,
+    scratch: &mut Scratch,
     camera_ray: Ray,
     sampler: &mut Sampler,
     pixel: u32,
@@ -326,7 +334,6 @@ pub fn trace(
         return out;
     };
     let mut radiance = radiance;
-    let mut scratch = Scratch::new(rs, opts);
     let mut beta = Vec3::ONE;
     let mut depth = 0u32;
     loop {
@@ -346,7 +353,7 @@ pub fn trace(
                 rs,
                 st,
                 opts,
-                &mut scratch,
+                scratch,
                 &h,
                 &bsdf,
                 &frame,
@@ -412,12 +419,13 @@ pub fn trace(
     out
 }
 
-/// One sample of pixel `(x, y)` with the `ocv` estimator.
+/// One sample of pixel `(x, y)` with the `ocv` estimator (`scratch` as in [`trace`]).
 #[inline]
 pub fn sample_pixel(
     rs: &RenderScene,
     st: &RenderSettings,
     opts: &OcvOptions,
+    scratch: &mut Scratch,
     x: u32,
     y: u32,
     sample_index: u32,
@@ -426,5 +434,14 @@ pub fn sample_pixel(
     let mut sampler = Sampler::new(st.seed, pixel, sample_index);
     let u = sampler.next_2d();
     let ray = rs.camera.ray(Vec2::new(x as f32 + u.x, y as f32 + u.y));
-    trace(rs, st, opts, ray, &mut sampler, pixel, sample_index)
+    trace(
+        rs,
+        st,
+        opts,
+        scratch,
+        ray,
+        &mut sampler,
+        pixel,
+        sample_index,
+    )
 }
