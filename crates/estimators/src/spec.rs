@@ -93,7 +93,7 @@ impl PhaseSamples {
 ///
 /// | parameter | type | default | meaning |
 /// |---|---|---|---|
-/// | `spe` | u32 | 16 | samples per estimate (per vertex gather), ≥ 2; with fewer than two per mixture component a vertex's estimate is the plain deterministic mixture (`estimators::ocv::MIN_SAMPLES_PER_COMPONENT`) |
+/// | `spe` | u32 | 8 | samples per estimate (per vertex gather), ≥ 2 (8, not Fan's 64: at equal time on `checkers` 8 beats 16 and 4, `docs/bench/README.md`); with fewer than two per mixture component a vertex's estimate is the plain deterministic mixture (`estimators::ocv::MIN_SAMPLES_PER_COMPONENT`) |
 /// | `lambda` | f64 | 1.0 | ridge penalty λ [Fan eq. 11] |
 /// | `bsdf_share` | f64 | 0.5 | mixture weight α of the BSDF component (the rest is split equally among the light components), in [0, 1] |
 /// | `penalize_intercept` | bool | false | literal [Fan eq. 11]: also penalise β0 (shrinks each estimate by ≈ λ/(N+λ); see [`crate::ocv`]) |
@@ -119,7 +119,7 @@ pub struct OcvOptions {
 impl Default for OcvOptions {
     fn default() -> Self {
         Self {
-            spe: 16,
+            spe: 8,
             lambda: 1.0,
             bsdf_share: 0.5,
             penalize_intercept: false,
