@@ -153,6 +153,8 @@ pub struct OcvFit {
 /// vertex of every camera sample).
 #[derive(Clone, Debug, Default)]
 pub struct OcvSolver {
+    /// The mixture weights of the last call, as passed (validated).
+    mixture: Vec<f64>,
     /// Normalised mixture weights `α_j / Σα`.
     alpha: Vec<f64>,
     /// Normal matrix, `q × q` row-major; after the fit its lower triangle holds the Cholesky
@@ -164,84 +166,28 @@ pub struct OcvSolver {
     row: Vec<f64>,
     /// Jacobi scale `1/√A_aa`.
     scale: Vec<f64>,
-    /// Whether the last fit solved the system (else every `β_j` is 0).
-    solved: bool,
+    /// Unknowns of the last fit (`q = m`), 0 after a fallback (every `β_j` is then 0).
+    solved: usize,
 }
 
-/// The per-sample sums of one fit.
-struct Sums {
-    n: usize,
-    rejected: usize,
-    sum_y: [f64; CHANNELS],
+/// Whether `x` is a finite, non-negative density (false for NaN).
+#[inline(always)]
+fn is_density(x: f64) -> bool {
+    (x >= 0.0) & (x < f64::INFINITY)
 }
 
-/// Largest component count [`OcvSolver::accumulate`] keeps its regressor row on the stack for.
-const STACK_ROW: usize = 6;
+/// Whether `x` is finite (false for NaN), as one comparison.
+#[inline(always)]
+fn finite(x: f64) -> bool {
+    x.abs() < f64::INFINITY
+}
 
 impl OcvSolver {
-    /// Adds every valid sample's regressor row to the upper triangle of `XᵀX` and to `Xᵀy`
-    /// (buffers sized by [`fit`](Self::fit)). `Q` is the component count, or 0 for "read it
-    /// from the buffers" (any count).
-    fn accumulate<const Q: usize>(
-        &mut self,
-        values: &[[f64; CHANNELS]],
-        component_pdfs: &[f64],
-    ) -> Sums {
-        let q = if Q == 0 { self.alpha.len() } else { Q };
-        debug_assert_eq!(q, self.alpha.len());
-        let mut stack_row = [0.0f64; STACK_ROW];
-        let row: &mut [f64] = if Q == 0 {
-            &mut self.row[..q]
-        } else {
-            &mut stack_row[..q]
-        };
-        let alpha = &self.alpha[..q];
-        let xtx = &mut self.xtx[..q * q];
-        let xty = &mut self.xty[..q * CHANNELS];
-        let (mut n, mut rejected) = (0usize, 0usize);
-        let mut sum_y = [0.0; CHANNELS];
-        for (v, pdfs) in values.iter().zip(component_pdfs.chunks_exact(q)) {
-            let p: f64 = pdfs.iter().zip(alpha).map(|(pj, a)| pj * a).sum();
-            let valid = v.iter().all(|x| x.is_finite())
-                && pdfs.iter().all(|x| x.is_finite() && *x >= 0.0)
-                && p > 0.0
-                && p.is_finite();
-            if !valid {
-                rejected += 1;
-                continue;
-            }
-            let y = v.map(|f| f / p);
-            if y.iter().any(|x| !x.is_finite()) {
-                rejected += 1;
-                continue;
-            }
-            row[0] = 1.0;
-            for (r, pj) in row[1..].iter_mut().zip(pdfs) {
-                *r = pj / p;
-            }
-            // Upper triangle only; mirrored by the caller.
-            for a in 0..q {
-                let ra = row[a];
-                for (x, rb) in xtx[a * q + a..(a + 1) * q].iter_mut().zip(&row[a..]) {
-                    *x += ra * rb;
-                }
-                for (x, yc) in xty[a * CHANNELS..(a + 1) * CHANNELS].iter_mut().zip(&y) {
-                    *x += ra * yc;
-                }
-            }
-            for ch in 0..CHANNELS {
-                sum_y[ch] += y[ch];
-            }
-            n += 1;
-        }
-        Sums { n, rejected, sum_y }
-    }
-
     /// `β_j` of the last [`fit`](Self::fit) per channel; 0 for the dropped last component,
     /// for `j` out of range and after a fallback.
     pub fn beta(&self, j: usize) -> [f64; CHANNELS] {
-        let q = self.scale.len();
-        if !self.solved || j + 1 >= q {
+        let q = self.solved;
+        if j + 1 >= q {
             return [0.0; CHANNELS];
         }
         let a = j + 1;
@@ -256,7 +202,7 @@ impl OcvSolver {
         mixture: &[f64],
         options: &OcvOptions,
     ) -> Result<OcvFit, OcvError> {
-        self.solved = false;
+        self.solved = 0;
         let m = mixture.len();
         if m == 0 {
             return Err(OcvError::NoComponents);
@@ -264,35 +210,89 @@ impl OcvSolver {
         if component_pdfs.len() != values.len() * m {
             return Err(OcvError::SizeMismatch);
         }
-        let total: f64 = mixture.iter().sum();
-        if mixture.iter().any(|a| !a.is_finite() || *a < 0.0) || !(total > 0.0) {
-            return Err(OcvError::BadMixture);
+        // A renderer passes the same mixture at every shading point: validate and normalise
+        // it once.
+        if self.mixture != mixture {
+            let total: f64 = mixture.iter().sum();
+            if mixture.iter().any(|a| !a.is_finite() || *a < 0.0) || !(total > 0.0) {
+                return Err(OcvError::BadMixture);
+            }
+            self.mixture.clear();
+            self.mixture.extend_from_slice(mixture);
+            self.alpha.clear();
+            self.alpha.extend(mixture.iter().map(|a| a / total));
+            // Unknowns: β0 and β_1..β_{m-1}.
+            let q = m;
+            self.xtx.resize(q * q, 0.0);
+            self.xty.resize(q * CHANNELS, 0.0);
+            self.row.resize(q, 0.0);
+            self.scale.resize(q, 0.0);
         }
-        // Unknowns: β0 and β_1..β_{m-1}.
-        let q = m;
-        self.alpha.clear();
-        self.alpha.extend(mixture.iter().map(|a| a / total));
-        self.xtx.clear();
-        self.xtx.resize(q * q, 0.0);
-        self.xty.clear();
-        self.xty.resize(q * CHANNELS, 0.0);
-        self.row.clear();
-        self.row.resize(q, 0.0);
-        self.scale.clear();
-        self.scale.resize(q, 0.0);
-        // The per-sample sums are the hot loop (one fit per shading point): compiled for
-        // each small component count so that its loops unroll, generic above.
-        let sums = match m {
-            1 => self.accumulate::<1>(values, component_pdfs),
-            2 => self.accumulate::<2>(values, component_pdfs),
-            3 => self.accumulate::<3>(values, component_pdfs),
-            4 => self.accumulate::<4>(values, component_pdfs),
-            5 => self.accumulate::<5>(values, component_pdfs),
-            6 => self.accumulate::<6>(values, component_pdfs),
-            _ => self.accumulate::<0>(values, component_pdfs),
-        };
-        let Sums { n, rejected, sum_y } = sums;
-        let (xtx, xty) = (&mut self.xtx, &mut self.xty);
+        // Compiled for each small component count so that the loops unroll; generic above.
+        match m {
+            1 => self.fit_q::<1>(values, component_pdfs, options),
+            2 => self.fit_q::<2>(values, component_pdfs, options),
+            3 => self.fit_q::<3>(values, component_pdfs, options),
+            4 => self.fit_q::<4>(values, component_pdfs, options),
+            5 => self.fit_q::<5>(values, component_pdfs, options),
+            6 => self.fit_q::<6>(values, component_pdfs, options),
+            _ => self.fit_q::<0>(values, component_pdfs, options),
+        }
+    }
+
+    /// [`fit`](Self::fit) after the mixture checks, with `Q` the component count, or 0 for
+    /// "take it from the buffers" (any count).
+    fn fit_q<const Q: usize>(
+        &mut self,
+        values: &[[f64; CHANNELS]],
+        component_pdfs: &[f64],
+        options: &OcvOptions,
+    ) -> Result<OcvFit, OcvError> {
+        let q = if Q == 0 { self.alpha.len() } else { Q };
+        debug_assert_eq!(q, self.alpha.len());
+        let alpha = &self.alpha[..q];
+        let xtx = &mut self.xtx[..q * q];
+        let xty = &mut self.xty[..q * CHANNELS];
+        let row = &mut self.row[..q];
+        let scale = &mut self.scale[..q];
+        xtx.fill(0.0);
+        xty.fill(0.0);
+
+        // The per-sample sums: the upper triangle of `XᵀX`, and `Xᵀy`.
+        let (mut n, mut rejected) = (0usize, 0usize);
+        let mut sum_y = [0.0; CHANNELS];
+        for (v, pdfs) in values.iter().zip(component_pdfs.chunks_exact(q)) {
+            let mut p = 0.0;
+            let mut valid = true;
+            for (&pj, &a) in pdfs.iter().zip(alpha) {
+                p += pj * a;
+                valid &= is_density(pj);
+            }
+            let y = v.map(|f| f / p);
+            // With `p` finite and positive, `y` finite means `v` finite.
+            valid &= p > 0.0 && p < f64::INFINITY && finite(y[0]) & finite(y[1]) & finite(y[2]);
+            if !valid {
+                rejected += 1;
+                continue;
+            }
+            row[0] = 1.0;
+            for (r, pj) in row[1..].iter_mut().zip(pdfs) {
+                *r = pj / p;
+            }
+            for a in 0..q {
+                let ra = row[a];
+                for (x, rb) in xtx[a * q + a..(a + 1) * q].iter_mut().zip(&row[a..]) {
+                    *x += ra * rb;
+                }
+                for (x, yc) in xty[a * CHANNELS..(a + 1) * CHANNELS].iter_mut().zip(&y) {
+                    *x += ra * yc;
+                }
+            }
+            for ch in 0..CHANNELS {
+                sum_y[ch] += y[ch];
+            }
+            n += 1;
+        }
         if n == 0 {
             return Err(OcvError::NoSamples);
         }
@@ -305,7 +305,7 @@ impl OcvSolver {
             rejected,
             plain,
         };
-        if n < MIN_SAMPLES_PER_COMPONENT * m {
+        if n < MIN_SAMPLES_PER_COMPONENT * q {
             return Ok(fallback(f64::NAN));
         }
         let lambda = if options.lambda.is_finite() {
@@ -323,10 +323,9 @@ impl OcvSolver {
         }
         // Jacobi scaling for the factorisation and the condition estimate; a zero diagonal
         // (a component never nonzero and λ = 0) cannot be fitted.
-        let scale = &mut self.scale;
         for a in 0..q {
             let d = xtx[a * q + a];
-            if !(d > 0.0) || !d.is_finite() {
+            if !(d > 0.0 && d < f64::INFINITY) {
                 return Ok(fallback(f64::INFINITY));
             }
             scale[a] = 1.0 / d.sqrt();
@@ -346,7 +345,7 @@ impl OcvSolver {
             for k in 0..j {
                 d -= xtx[j * q + k] * xtx[j * q + k];
             }
-            if !(d > 0.0) || !d.is_finite() {
+            if !(d > 0.0 && d < f64::INFINITY) {
                 return Ok(fallback(f64::INFINITY));
             }
             let ljj = d.sqrt();
@@ -359,10 +358,11 @@ impl OcvSolver {
                 xtx[i * q + j] = s / ljj;
             }
         }
-        let (lo, hi) = (0..q).fold((f64::INFINITY, 0.0f64), |(lo, hi), a| {
+        let (mut lo, mut hi) = (f64::INFINITY, 0.0f64);
+        for a in 0..q {
             let d = xtx[a * q + a];
-            (lo.min(d * d), hi.max(d * d))
-        });
+            (lo, hi) = (lo.min(d * d), hi.max(d * d));
+        }
         let condition = if lo > 0.0 { hi / lo } else { f64::INFINITY };
         if !(condition <= options.max_condition) {
             return Ok(fallback(condition));
@@ -395,10 +395,10 @@ impl OcvSolver {
                 estimate[ch] += xty[j * CHANNELS + ch] * scale[j];
             }
         }
-        if estimate.iter().any(|e| !e.is_finite()) {
+        if !estimate.iter().all(|e| e.is_finite()) {
             return Ok(fallback(condition));
         }
-        self.solved = true;
+        self.solved = q;
         Ok(OcvFit {
             estimate,
             beta0,
