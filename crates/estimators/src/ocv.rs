@@ -173,7 +173,7 @@ pub struct OcvSolver {
 /// Whether `x` is a finite, non-negative density (false for NaN).
 #[inline(always)]
 fn is_density(x: f64) -> bool {
-    (x >= 0.0) & (x < f64::INFINITY)
+    (0.0..f64::INFINITY).contains(&x)
 }
 
 /// Whether `x` is finite (false for NaN), as one comparison.
