@@ -232,9 +232,35 @@ impl Accel {
         sphere_lights: &[Option<u32>],
         kind: AccelKind,
     ) -> Self {
+        Self::build(scene, mesh_lights, sphere_lights, kind, false)
+    }
+
+    /// The BVH over the emitting shapes of `scene` alone (arguments as [`Accel::new`]): the
+    /// emitter a ray reaches first, whatever lies in front of it. Its hits carry the shape,
+    /// material and light of the full structure's; a caller that needs the first surface
+    /// tests the segment to the hit against that structure ([`Accel::occluded`]).
+    pub fn emitters(
+        scene: &scene::Scene,
+        mesh_lights: &[Option<u32>],
+        sphere_lights: &[Option<u32>],
+    ) -> Self {
+        Self::build(scene, mesh_lights, sphere_lights, AccelKind::Auto, true)
+    }
+
+    fn build(
+        scene: &scene::Scene,
+        mesh_lights: &[Option<u32>],
+        sphere_lights: &[Option<u32>],
+        kind: AccelKind,
+        emitters_only: bool,
+    ) -> Self {
+        let emits = |lights: &[Option<u32>], i: usize| lights.get(i).copied().flatten().is_some();
         let mut prims = Vec::new();
         let mut aabbs = Vec::new();
         for (mi, mesh) in scene.meshes.iter().enumerate() {
+            if emitters_only && !emits(mesh_lights, mi) {
+                continue;
+            }
             for (ti, tri) in mesh.indices.iter().enumerate() {
                 let [p0, p1, p2] = tri.map(|i| mesh.positions[i as usize]);
                 prims.push(Prim {
@@ -252,6 +278,9 @@ impl Accel {
             }
         }
         for (si, s) in scene.spheres.iter().enumerate() {
+            if emitters_only && !emits(sphere_lights, si) {
+                continue;
+            }
             prims.push(Prim {
                 a: s.center,
                 b: Vec3::new(s.radius, 0.0, 0.0),

@@ -248,3 +248,90 @@ fn negative_zero_direction_components_still_hit() {
     );
     assert!(a.occluded(Vec3::new(0.3, 0.2, 5.0), d, 10.0));
 }
+
+#[test]
+fn the_emitters_structure_finds_the_first_emitter_and_the_full_one_what_blocks_it() {
+    // A soup of 600 triangles in three meshes (the middle one emits as light 7) and two
+    // spheres (the second emits as light 2). For every ray: the full structure's closest hit
+    // is an emitter exactly when the emitters-only structure's hit is unoccluded, and then it
+    // is the same shape, point and light.
+    let mut s = empty_scene(Mat4::IDENTITY, 45.0, 4, 4);
+    let m = add_material(&mut s, diffuse(Vec3::ONE, false));
+    for mesh in 0..3u64 {
+        let mut positions = Vec::new();
+        let mut tris = Vec::new();
+        for i in 0..200u64 {
+            let k = (mesh * 1000 + i) * 7;
+            let c = Vec3::new(unit(k), unit(k + 1), unit(k + 2)) * 10.0 - 5.0;
+            let e =
+                |j: u64| Vec3::new(unit(k + j), unit(k + j + 50_000), unit(k + j + 90_000)) - 0.5;
+            let base = positions.len() as u32;
+            positions.extend([c, c + e(3) * 2.0, c + e(4) * 2.0]);
+            tris.push([base, base + 1, base + 2]);
+        }
+        s.meshes.push(scene::Mesh {
+            positions,
+            normals: None,
+            uvs: None,
+            indices: tris,
+            material: m,
+            emitter: None,
+        });
+    }
+    s.spheres
+        .push(sphere(Vec3::new(1.0, 2.0, 0.5), 0.7, m, None));
+    s.spheres
+        .push(sphere(Vec3::new(-2.0, -1.0, 1.0), 0.9, m, None));
+    let (mesh_lights, sphere_lights) = ([None, Some(7), None], [None, Some(2)]);
+    let full = Accel::new(&s, &mesh_lights, &sphere_lights);
+    let emitters = Accel::emitters(&s, &mesh_lights, &sphere_lights);
+    assert_eq!(emitters.primitive_count(), 201);
+    let (mut reached, mut blocked) = (0, 0);
+    for r in 0..2000u64 {
+        let o = Vec3::new(
+            unit(r * 3 + 7_000_000),
+            unit(r * 3 + 7_000_001),
+            unit(r * 3 + 7_000_002),
+        ) * 12.0
+            - 6.0;
+        let d = (Vec3::new(
+            unit(r * 3 + 8_000_000),
+            unit(r * 3 + 8_000_001),
+            unit(r * 3 + 8_000_002),
+        ) - 0.5)
+            .normalize();
+        let ray = Ray {
+            o,
+            d,
+            t_max: f32::INFINITY,
+        };
+        let first = full.intersect(&ray);
+        match emitters.intersect(&ray) {
+            None => assert!(
+                first.is_none_or(|h| h.light.is_none()),
+                "ray {r}: the full structure hits an emitter the emitters' one misses"
+            ),
+            Some(e) => {
+                assert!(
+                    e.light.is_some(),
+                    "ray {r}: a non-emitter in the emitters' structure"
+                );
+                let t_block = e.t * (1.0 - 1e-4);
+                if full.occluded(o, d, t_block) {
+                    blocked += 1;
+                    let h = first.unwrap();
+                    assert!(h.t < e.t, "ray {r}: blocked behind the emitter");
+                } else {
+                    reached += 1;
+                    let h = first.unwrap();
+                    assert_eq!((h.shape, h.light), (e.shape, e.light), "ray {r}");
+                    assert!((h.p - e.p).length() < 1e-4, "ray {r}");
+                }
+            }
+        }
+    }
+    assert!(
+        reached > 50 && blocked > 20,
+        "reached {reached}, blocked {blocked}"
+    );
+}

@@ -384,6 +384,29 @@ fn ocv_with_indirect_light_and_chrome_is_unbiased_against_path() {
     );
 }
 
+#[test]
+fn ocv_with_an_environment_light_is_unbiased_against_path() {
+    // envmap: the gather's BSDF samples that reach no emitter see the environment unless a
+    // surface blocks them (an occlusion test, not a closest hit: `RenderScene::emitters`).
+    let scene = load("envmap", 32, 24);
+    let st = |spp, seed, e| RenderSettings {
+        spp,
+        seed,
+        max_depth: 3,
+        estimator: e,
+        ..RenderSettings::from_scene(&scene)
+    };
+    let path = render(&scene, &st(1024, 1, Estimator::Path));
+    let film = render(&scene, &st(64, 2, Estimator::Ocv(OcvOptions::default())));
+    assert_eq!(film.rejected, 0);
+    assert_agree(
+        "envmap d3 ocv vs path",
+        mean_and_se(&film),
+        mean_and_se(&path),
+        5.0,
+    );
+}
+
 /// relMSE (ε = 0.01) of `film` against `reference`, over pixels and channels.
 fn rel_mse(film: &Film, reference: &Film) -> f64 {
     let mut sum = 0.0;

@@ -236,6 +236,9 @@ pub enum RenderError {
 pub struct RenderScene {
     /// Ray–scene intersection.
     pub accel: Accel,
+    /// The emitting shapes alone ([`Accel::emitters`]), for gathers that need only the emitter
+    /// a ray reaches (`ocv`'s BSDF samples); built for those estimators only.
+    pub emitters: Option<Accel>,
     /// Per-material BSDF data.
     pub materials: MaterialTable,
     /// Emitters and their sampling structures.
@@ -279,10 +282,13 @@ impl RenderScene {
             .map(|i| lights.sphere_light(i))
             .collect();
         let accel = Accel::new(scene, &mesh_lights, &sphere_lights);
+        let emitters = matches!(settings.estimator, Estimator::Ocv(_))
+            .then(|| Accel::emitters(scene, &mesh_lights, &sphere_lights));
         let materials = MaterialTable::new(&scene.materials, &scene.textures);
         let camera = Camera::new(&scene.camera, &scene.film);
         Ok(Self {
             accel,
+            emitters,
             materials,
             lights,
             camera,

@@ -188,9 +188,9 @@ fn gather(
                         scratch.pdfs[row + j] = f64::from(bs.pdf);
                         let wi = frame.to_world(bs.wi);
                         let ray = h.spawn_ray(wi);
-                        rays += 1;
-                        match rs.accel.intersect(&ray) {
-                            None => {
+                        match reach(rs, h, &ray, &mut rays) {
+                            Reach::Blocked => {}
+                            Reach::Escaped => {
                                 let le = lights.env_radiance(wi);
                                 if let Some(l) = lights.env_light() {
                                     value = bs.weight * bs.pdf * le;
@@ -204,17 +204,15 @@ fn gather(
                                     }
                                 }
                             }
-                            Some(n) => {
-                                if let Some(l) = n.light {
-                                    value = bs.weight * bs.pdf * lights.area_radiance(l, n.ns, -wi);
-                                    if let Some(col) = scratch.column_of_light(l) {
-                                        scratch.pdfs[row + col] += light_pdf(
-                                            rs,
-                                            comp_of(scratch, col),
-                                            l,
-                                            lights.pdf_area(l, h.p, n.p, n.ns),
-                                        );
-                                    }
+                            Reach::Emitter(n, l) => {
+                                value = bs.weight * bs.pdf * lights.area_radiance(l, n.ns, -wi);
+                                if let Some(col) = scratch.column_of_light(l) {
+                                    scratch.pdfs[row + col] += light_pdf(
+                                        rs,
+                                        comp_of(scratch, col),
+                                        l,
+                                        lights.pdf_area(l, h.p, n.p, n.ns),
+                                    );
                                 }
                             }
                         }
@@ -282,6 +280,58 @@ fn gather(
 #[inline]
 fn comp_of(scratch: &Scratch, col: usize) -> Component {
     scratch.components[col].0
+}
+
+/// What a gather's BSDF ray reaches first, as far as the gather needs to know.
+enum Reach {
+    /// Nothing: the environment (if any) is seen.
+    Escaped,
+    /// Area light `l` at this hit.
+    Emitter(Hit, u32),
+    /// A surface that does not emit.
+    Blocked,
+}
+
+/// What `ray` (from `h`) reaches first; counts the rays traced into `rays`. With
+/// [`RenderScene::emitters`] a ray that reaches no emitter needs no search of the scene, and
+/// one that does needs a shadow test of the segment to it (the next-event convention,
+/// [`Hit::spawn_ray_to`]) instead of a closest-hit search: most of a gather's BSDF samples
+/// miss the lights.
+fn reach(rs: &RenderScene, h: &Hit, ray: &Ray, rays: &mut u32) -> Reach {
+    *rays += 1;
+    let Some(emitters) = &rs.emitters else {
+        return match rs.accel.intersect(ray) {
+            None => Reach::Escaped,
+            Some(n) => match n.light {
+                Some(l) => Reach::Emitter(n, l),
+                None => Reach::Blocked,
+            },
+        };
+    };
+    match emitters.intersect(ray) {
+        Some(n) => {
+            // Every shape of `emitters` emits.
+            let Some(l) = n.light else {
+                return Reach::Blocked;
+            };
+            let shadow = h.spawn_ray_to(n.p);
+            *rays += 1;
+            if rs.accel.occluded(shadow.o, shadow.d, shadow.t_max) {
+                Reach::Blocked
+            } else {
+                Reach::Emitter(n, l)
+            }
+        }
+        None if rs.lights.env_light().is_some() => {
+            *rays += 1;
+            if rs.accel.occluded(ray.o, ray.d, ray.t_max) {
+                Reach::Blocked
+            } else {
+                Reach::Escaped
+            }
+        }
+        None => Reach::Blocked,
+    }
 }
 
 /// Density of component `comp` for a point on light `l` whose per-light solid-angle pdf
