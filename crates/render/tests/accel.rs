@@ -6,11 +6,6 @@ use common::*;
 use glam::{Mat3, Mat4, Vec2, Vec3};
 use render::accel::{Accel, ShapeRef};
 use render::math::Ray;
-use render::sampler::mix64;
-
-fn unit(h: u64) -> f32 {
-    (mix64(h) >> 40) as f32 / (1u64 << 24) as f32
-}
 
 #[test]
 fn triangle_attributes_match_mitsuba_with_opposite_vertex_normals() {
@@ -117,23 +112,8 @@ fn bvh_closest_hit_agrees_with_brute_force_on_a_triangle_soup() {
     let a = Accel::new(&s, &[], &[]);
     let mut hits = 0;
     for r in 0..500u64 {
-        let o = Vec3::new(
-            unit(r * 3 + 1_000_000),
-            unit(r * 3 + 1_000_001),
-            unit(r * 3 + 1_000_002),
-        ) * 12.0
-            - 6.0;
-        let d = (Vec3::new(
-            unit(r * 3 + 2_000_000),
-            unit(r * 3 + 2_000_001),
-            unit(r * 3 + 2_000_002),
-        ) - 0.5)
-            .normalize();
-        let ray = Ray {
-            o,
-            d,
-            t_max: f32::INFINITY,
-        };
+        let ray = random_ray(r, 6.0);
+        let (o, d) = (ray.o, ray.d);
         // Brute force (ray–plane + inside test in f64).
         let mut best = f64::INFINITY;
         for t in &tris {
@@ -288,23 +268,8 @@ fn the_emitters_structure_finds_the_first_emitter_and_the_full_one_what_blocks_i
     assert_eq!(emitters.primitive_count(), 201);
     let (mut reached, mut blocked) = (0, 0);
     for r in 0..2000u64 {
-        let o = Vec3::new(
-            unit(r * 3 + 7_000_000),
-            unit(r * 3 + 7_000_001),
-            unit(r * 3 + 7_000_002),
-        ) * 12.0
-            - 6.0;
-        let d = (Vec3::new(
-            unit(r * 3 + 8_000_000),
-            unit(r * 3 + 8_000_001),
-            unit(r * 3 + 8_000_002),
-        ) - 0.5)
-            .normalize();
-        let ray = Ray {
-            o,
-            d,
-            t_max: f32::INFINITY,
-        };
+        let ray = random_ray(r ^ 0x00e0_17e2, 6.0);
+        let (o, d) = (ray.o, ray.d);
         let first = full.intersect(&ray);
         match emitters.intersect(&ray) {
             None => assert!(

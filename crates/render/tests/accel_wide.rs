@@ -8,20 +8,6 @@ use common::*;
 use glam::{Mat4, Vec3};
 use render::accel::{Accel, AccelKind};
 use render::math::Ray;
-use render::sampler::mix64;
-
-fn unit(h: u64) -> f32 {
-    (mix64(h) >> 40) as f32 / (1u64 << 24) as f32
-}
-
-fn unit_vec(h: u64) -> Vec3 {
-    loop {
-        let v = Vec3::new(unit(h), unit(h ^ 0x55), unit(h ^ 0xaa)) * 2.0 - 1.0;
-        if v.length_squared() > 1e-4 {
-            return v.normalize();
-        }
-    }
-}
 
 /// A closed, subdivided octahedron (8·4ⁿ triangles sharing exact vertices), radius ~1.
 fn octahedron(levels: u32, material: u32) -> scene::Mesh {
@@ -120,20 +106,6 @@ fn soup_scene(n: u64) -> scene::Scene {
     s
 }
 
-fn random_ray(r: u64) -> Ray {
-    let o = Vec3::new(
-        unit(r * 3 + 1_000_000),
-        unit(r * 3 + 1_000_001),
-        unit(r * 3 + 1_000_002),
-    ) * 16.0
-        - 8.0;
-    Ray {
-        o,
-        d: unit_vec(r ^ 0x1234_5678),
-        t_max: f32::INFINITY,
-    }
-}
-
 #[test]
 fn wide_bvh_hits_equal_cwbvh_hits_bit_for_bit() {
     let s = soup_scene(600);
@@ -143,7 +115,7 @@ fn wide_bvh_hits_equal_cwbvh_hits_bit_for_bit() {
     assert_eq!(cw.kind(), AccelKind::Cwbvh);
     let mut hits = 0;
     for r in 0..4000u64 {
-        let mut ray = random_ray(r);
+        let mut ray = random_ray(r, 8.0);
         // Some rays axis-aligned (zero direction components) and some with a finite t_max.
         if r % 7 == 0 {
             ray.d = [Vec3::X, -Vec3::Y, Vec3::Z, -Vec3::X][(r / 7 % 4) as usize];
@@ -178,7 +150,7 @@ fn wide_bvh_any_hit_agrees_with_closest_hit() {
     let s = soup_scene(300);
     let a = Accel::with_kind(&s, &[], &[], AccelKind::Wide);
     for r in 0..3000u64 {
-        let ray = random_ray(r);
+        let ray = random_ray(r, 8.0);
         let t_max = 0.5 + 20.0 * unit(r + 5);
         let closest = a.intersect(&Ray { t_max, ..ray }).map(|h| h.t);
         assert_eq!(

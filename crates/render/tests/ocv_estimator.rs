@@ -246,26 +246,11 @@ fn ocv_renders_every_shipped_scene_without_nan() {
 #[test]
 fn ocv_with_many_lights_combined_component_is_unbiased() {
     // 64 lights > max_light_components: one component sampled by the light selection.
-    let scene = load("many-lights", 32, 32);
-    let st = |spp, seed, e| RenderSettings {
-        spp,
-        seed,
-        max_depth: 2,
-        estimator: e,
-        ..RenderSettings::from_scene(&scene)
-    };
-    let path = render(&scene, &st(1024, 1, Estimator::Path));
     let o = OcvOptions {
         spe: 32,
         ..OcvOptions::default()
     };
-    let film = render(&scene, &st(32, 2, Estimator::Ocv(o)));
-    assert_agree(
-        "many-lights ocv vs path",
-        mean_and_se(&film),
-        mean_and_se(&path),
-        5.0,
-    );
+    assert_ocv_agrees_with_path("many-lights", (32, 32), 2, o, 32);
 }
 
 #[test]
@@ -361,46 +346,42 @@ fn ocv_has_lower_gather_variance_than_path_at_equal_direct_samples_on_checkers()
 fn ocv_with_indirect_light_and_chrome_is_unbiased_against_path() {
     // colour-lamp: 3 lamps, glossy plastic and a chrome (delta) sphere; depth 5 exercises the
     // continuation (emission after a delta vertex counted once, never after a gather).
-    let scene = load("colour-lamp", 32, 32);
-    let st = |spp, seed, e| RenderSettings {
-        spp,
-        seed,
-        max_depth: 5,
-        estimator: e,
-        ..RenderSettings::from_scene(&scene)
-    };
-    let path = render(&scene, &st(1024, 1, Estimator::Path));
     let o = OcvOptions {
         spe: 32,
         ..OcvOptions::default()
     };
-    let film = render(&scene, &st(64, 2, Estimator::Ocv(o)));
-    assert_eq!(film.rejected, 0);
-    assert_agree(
-        "colour-lamp d5 ocv vs path",
-        mean_and_se(&film),
-        mean_and_se(&path),
-        5.0,
-    );
+    assert_ocv_agrees_with_path("colour-lamp", (32, 32), 5, o, 64);
 }
 
 #[test]
 fn ocv_with_an_environment_light_is_unbiased_against_path() {
     // envmap: the gather's BSDF samples that reach no emitter see the environment unless a
     // surface blocks them (an occlusion test, not a closest hit: `RenderScene::emitters`).
-    let scene = load("envmap", 32, 24);
+    assert_ocv_agrees_with_path("envmap", (32, 24), 3, OcvOptions::default(), 64);
+}
+
+/// Renders shipped scene `name` at `size` and `max_depth` with `ocv` (`spp`, seed 2) and
+/// with `path` (1024 spp, seed 1): no rejected sample, image means within 5 combined SE.
+fn assert_ocv_agrees_with_path(
+    name: &str,
+    size: (u32, u32),
+    max_depth: i32,
+    o: OcvOptions,
+    spp: u32,
+) {
+    let scene = load(name, size.0, size.1);
     let st = |spp, seed, e| RenderSettings {
         spp,
         seed,
-        max_depth: 3,
+        max_depth,
         estimator: e,
         ..RenderSettings::from_scene(&scene)
     };
     let path = render(&scene, &st(1024, 1, Estimator::Path));
-    let film = render(&scene, &st(64, 2, Estimator::Ocv(OcvOptions::default())));
-    assert_eq!(film.rejected, 0);
+    let film = render(&scene, &st(spp, 2, Estimator::Ocv(o)));
+    assert_eq!(film.rejected, 0, "{name}");
     assert_agree(
-        "envmap d3 ocv vs path",
+        &format!("{name} d{max_depth} ocv vs path"),
         mean_and_se(&film),
         mean_and_se(&path),
         5.0,

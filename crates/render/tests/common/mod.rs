@@ -93,3 +93,37 @@ pub fn sphere(center: Vec3, radius: f32, material: u32, emitter: Option<Vec3>) -
 pub fn constant_env(radiance: Vec3) -> Option<Environment> {
     Some(Environment::Constant { radiance })
 }
+
+/// A number in `[0, 1)` hashed from `h` (24 bits, exactly representable).
+pub fn unit(h: u64) -> f32 {
+    (render::sampler::mix64(h) >> 40) as f32 / (1u64 << 24) as f32
+}
+
+/// A unit vector hashed from `h` (a point of the cube `[−1, 1]³` away from the centre,
+/// normalised).
+pub fn unit_vec(h: u64) -> Vec3 {
+    let mut h = h;
+    loop {
+        let v = Vec3::new(unit(h), unit(h ^ 0x55), unit(h ^ 0xaa)) * 2.0 - 1.0;
+        if v.length_squared() > 1e-4 {
+            return v.normalize();
+        }
+        h = h.wrapping_add(0x9e37);
+    }
+}
+
+/// A ray hashed from `r`: origin in the cube `[−extent, extent]³`, direction [`unit_vec`],
+/// unbounded.
+pub fn random_ray(r: u64, extent: f32) -> render::math::Ray {
+    let o = Vec3::new(
+        unit(r * 3 + 1_000_000),
+        unit(r * 3 + 1_000_001),
+        unit(r * 3 + 1_000_002),
+    ) * (2.0 * extent)
+        - extent;
+    render::math::Ray {
+        o,
+        d: unit_vec(r ^ 0x1234_5678),
+        t_max: f32::INFINITY,
+    }
+}
