@@ -246,11 +246,7 @@ fn ocv_renders_every_shipped_scene_without_nan() {
 #[test]
 fn ocv_with_many_lights_combined_component_is_unbiased() {
     // 64 lights > max_light_components: one component sampled by the light selection.
-    let o = OcvOptions {
-        spe: 32,
-        ..OcvOptions::default()
-    };
-    assert_ocv_agrees_with_path("many-lights", (32, 32), 2, o, 32);
+    assert_ocv_agrees_with_path("many-lights", (32, 32), 2, 32, 32);
 }
 
 #[test]
@@ -346,29 +342,24 @@ fn ocv_has_lower_gather_variance_than_path_at_equal_direct_samples_on_checkers()
 fn ocv_with_indirect_light_and_chrome_is_unbiased_against_path() {
     // colour-lamp: 3 lamps, glossy plastic and a chrome (delta) sphere; depth 5 exercises the
     // continuation (emission after a delta vertex counted once, never after a gather).
-    let o = OcvOptions {
-        spe: 32,
-        ..OcvOptions::default()
-    };
-    assert_ocv_agrees_with_path("colour-lamp", (32, 32), 5, o, 64);
+    assert_ocv_agrees_with_path("colour-lamp", (32, 32), 5, 32, 64);
 }
 
 #[test]
 fn ocv_with_an_environment_light_is_unbiased_against_path() {
     // envmap: the gather's BSDF samples that reach no emitter see the environment unless a
     // surface blocks them (an occlusion test, not a closest hit: `RenderScene::emitters`).
-    assert_ocv_agrees_with_path("envmap", (32, 24), 3, OcvOptions::default(), 64);
+    let spe = OcvOptions::default().spe;
+    assert_ocv_agrees_with_path("envmap", (32, 24), 3, spe, 64);
 }
 
-/// Renders shipped scene `name` at `size` and `max_depth` with `ocv` (`spp`, seed 2) and
-/// with `path` (1024 spp, seed 1): no rejected sample, image means within 5 combined SE.
-fn assert_ocv_agrees_with_path(
-    name: &str,
-    size: (u32, u32),
-    max_depth: i32,
-    o: OcvOptions,
-    spp: u32,
-) {
+/// Renders shipped scene `name` at `size` and `max_depth` with `ocv` (`spe`, `spp`, seed 2)
+/// and with `path` (1024 spp, seed 1): no rejected sample, image means within 5 combined SE.
+fn assert_ocv_agrees_with_path(name: &str, size: (u32, u32), max_depth: i32, spe: u32, spp: u32) {
+    let o = OcvOptions {
+        spe,
+        ..OcvOptions::default()
+    };
     let scene = load(name, size.0, size.1);
     let st = |spp, seed, e| RenderSettings {
         spp,
