@@ -12,6 +12,8 @@ use render::{Estimator, RenderOptions};
 
 fn estimators() -> Vec<Estimator> {
     vec![
+        // Its gathers' BSDF samples go through the emitters-only BVH (`RenderScene::emitters`).
+        Estimator::Ocv(render::integrator::ocv::OcvOptions::default()),
         Estimator::Cms(CmsOptions {
             training_spp: 4,
             min_samples: 4,
