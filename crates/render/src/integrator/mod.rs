@@ -237,7 +237,10 @@ pub struct RenderScene {
     /// Ray–scene intersection.
     pub accel: Accel,
     /// The emitting shapes alone ([`Accel::emitters`]), for gathers that need only the emitter
-    /// a ray reaches (`ocv`'s BSDF samples); built for those estimators only.
+    /// a ray reaches (`ocv`'s BSDF samples). Built whenever the scene has area emitters,
+    /// whatever the settings, so that an estimator's image does not depend on the settings a
+    /// shared `RenderScene` was prepared with (`cvfarm bench` prepares one for all); it holds
+    /// the emitters' primitives only.
     pub emitters: Option<Accel>,
     /// Per-material BSDF data.
     pub materials: MaterialTable,
@@ -282,8 +285,11 @@ impl RenderScene {
             .map(|i| lights.sphere_light(i))
             .collect();
         let accel = Accel::new(scene, &mesh_lights, &sphere_lights);
-        let emitters = matches!(settings.estimator, Estimator::Ocv(_))
-            .then(|| Accel::emitters(scene, &mesh_lights, &sphere_lights));
+        let emitters = (mesh_lights
+            .iter()
+            .chain(&sphere_lights)
+            .any(Option::is_some))
+        .then(|| Accel::emitters(scene, &mesh_lights, &sphere_lights));
         let materials = MaterialTable::new(&scene.materials, &scene.textures);
         let camera = Camera::new(&scene.camera, &scene.film);
         Ok(Self {

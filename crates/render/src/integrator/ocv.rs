@@ -292,23 +292,14 @@ enum Reach {
     Blocked,
 }
 
-/// What `ray` (from `h`) reaches first; counts the rays traced into `rays`. With
-/// [`RenderScene::emitters`] a ray that reaches no emitter needs no search of the scene, and
-/// one that does needs a shadow test of the segment to it (the next-event convention,
-/// [`Hit::spawn_ray_to`]) instead of a closest-hit search: most of a gather's BSDF samples
-/// miss the lights.
+/// What `ray` (from `h`) reaches first; counts the rays traced into `rays`. The emitter comes
+/// from [`RenderScene::emitters`] (`None`: the scene has no area emitter), so a ray that
+/// reaches no emitter needs no search of the scene, and one that does needs a shadow test of
+/// the segment to it (the next-event convention, [`Hit::spawn_ray_to`]) instead of a
+/// closest-hit search: most of a gather's BSDF samples miss the lights.
 fn reach(rs: &RenderScene, h: &Hit, ray: &Ray, rays: &mut u32) -> Reach {
     *rays += 1;
-    let Some(emitters) = &rs.emitters else {
-        return match rs.accel.intersect(ray) {
-            None => Reach::Escaped,
-            Some(n) => match n.light {
-                Some(l) => Reach::Emitter(n, l),
-                None => Reach::Blocked,
-            },
-        };
-    };
-    match emitters.intersect(ray) {
+    match rs.emitters.as_ref().and_then(|e| e.intersect(ray)) {
         Some(n) => {
             // Every shape of `emitters` emits.
             let Some(l) = n.light else {
