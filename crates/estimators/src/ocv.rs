@@ -170,12 +170,6 @@ pub struct OcvSolver {
     solved: usize,
 }
 
-/// Whether `x` is a finite, non-negative density (false for NaN).
-#[inline(always)]
-fn is_density(x: f64) -> bool {
-    (0.0..f64::INFINITY).contains(&x)
-}
-
 /// Whether `x` is finite (false for NaN), as one comparison.
 #[inline(always)]
 fn finite(x: f64) -> bool {
@@ -263,13 +257,16 @@ impl OcvSolver {
         let mut sum_y = [0.0; CHANNELS];
         for (v, pdfs) in values.iter().zip(component_pdfs.chunks_exact(q)) {
             let mut p = 0.0;
-            let mut valid = true;
+            let mut negative = false;
             for (&pj, &a) in pdfs.iter().zip(alpha) {
                 p += pj * a;
-                valid &= is_density(pj);
+                negative |= pj < 0.0;
             }
+            let mut valid = !negative;
+            // `p` finite and positive means every density finite (an infinite or NaN one
+            // makes `p` infinite or NaN, as the weights are finite and ≥ 0, and `∞ · 0` is
+            // NaN); then `y` finite means `v` finite.
             let y = v.map(|f| f / p);
-            // With `p` finite and positive, `y` finite means `v` finite.
             valid &= p > 0.0 && p < f64::INFINITY && finite(y[0]) & finite(y[1]) & finite(y[2]);
             if !valid {
                 rejected += 1;
