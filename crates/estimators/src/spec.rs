@@ -99,6 +99,7 @@ impl PhaseSamples {
 /// | `penalize_intercept` | bool | false | literal [Fan eq. 11]: also penalise β0 (shrinks each estimate by ≈ λ/(N+λ); see [`crate::ocv`]) |
 /// | `optimize` | bool | true | false: plain deterministic-mixture estimate [Fan eq. 6] (Fan's MIS baseline) |
 /// | `max_light_components` | u32 | 16 | with more lights than this, or fewer than two `spe` per light and BSDF component, all lights form **one** component sampled by the light selection (Fan §7's advice for many lights) |
+/// | `min_speedup` | f64 or `null` | 1.2 | the gather runs only where a pilot (one pixel in 576, both estimators, two seeds of half the job's samples) predicts at least this equal-time speedup over `path`; else the job renders `path`'s image; `null`: always the gather (`render::integrator::ocv`, "Choosing `path` or the gather"; 1.2: a margin over the pilot's ±20 % error) |
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct OcvOptions {
@@ -114,6 +115,9 @@ pub struct OcvOptions {
     pub optimize: bool,
     /// Above this many lights, one combined light component.
     pub max_light_components: u32,
+    /// The gather runs where the pilot predicts at least this equal-time speedup over
+    /// `path` (`None`: always).
+    pub min_speedup: Option<f64>,
 }
 
 impl Default for OcvOptions {
@@ -125,6 +129,7 @@ impl Default for OcvOptions {
             penalize_intercept: false,
             optimize: true,
             max_light_components: 16,
+            min_speedup: Some(1.2),
         }
     }
 }
@@ -138,6 +143,7 @@ impl OcvOptions {
         "penalize_intercept",
         "optimize",
         "max_light_components",
+        "min_speedup",
     ];
 
     /// Checks the ranges; returns the offending field and why.
@@ -155,6 +161,12 @@ impl OcvOptions {
         }
         if !(0.0..=1.0).contains(&self.bsdf_share) {
             return Err(("bsdf_share", "must lie in [0, 1]"));
+        }
+        if self
+            .min_speedup
+            .is_some_and(|m| !(m >= 0.0 && m.is_finite()))
+        {
+            return Err(("min_speedup", "must be finite and ≥ 0, or null"));
         }
         Ok(())
     }

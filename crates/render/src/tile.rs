@@ -126,6 +126,8 @@ pub fn render_tile_counted(
         Estimator::Ocv(o) => ocv::Scratch::new(rs, o),
         _ => ocv::Scratch::default(),
     };
+    // `ocv`'s pilot choice (made once per job: `RenderScene::ocv_choice`).
+    let use_ocv = rs.ocv_choice(st).is_some_and(|c| c.use_ocv);
     for y in tile.y0..tile.y0 + tile.height {
         for x in tile.x0..tile.x0 + tile.width {
             let px = film.pixel_mut(x, y);
@@ -133,7 +135,10 @@ pub fn render_tile_counted(
             for s in samples.clone() {
                 let sample = match st.estimator {
                     Estimator::Path => path::sample_pixel(rs, st, x, y, s),
-                    Estimator::Ocv(o) => ocv::sample_pixel(rs, st, &o, &mut ocv_scratch, x, y, s),
+                    Estimator::Ocv(o) if use_ocv => {
+                        ocv::sample_pixel(rs, st, &o, &mut ocv_scratch, x, y, s)
+                    }
+                    Estimator::Ocv(_) => path::sample_pixel(rs, st, x, y, s),
                     // Phased CV estimators need their coefficients (see
                     // `cv::render_estimator_image`); a bare tile renders the baseline.
                     Estimator::Cms(_) | Estimator::PerLightCv(_) | Estimator::OptimalMis(_) => {
@@ -178,6 +183,8 @@ pub fn render_image(
         .num_threads(options.threads)
         .build()
         .map_err(|e| RenderError::ThreadPool(e.to_string()))?;
+    // `ocv`'s pilot, on the whole pool before the tiles (which then read its choice).
+    let pilot_rays = pool.install(|| rs.ocv_choice(st)).map_or(0, |c| c.rays);
     let results: Vec<Result<(Film, u64), RenderError>> = pool.install(|| {
         tiles
             .par_iter()
@@ -191,7 +198,7 @@ pub fn render_image(
             .collect()
     });
     let mut film = Film::new(rs.width, rs.height);
-    let mut rays = 0;
+    let mut rays = pilot_rays;
     for r in results {
         let (tile_film, tile_rays) = r?;
         film.merge(&tile_film);

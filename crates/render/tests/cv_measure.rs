@@ -106,3 +106,84 @@ fn measure_equal_spp_ratios() {
         }
     }
 }
+
+/// `ocv`'s pilot choice (module docs of `render::integrator::ocv`, "Choosing `path` or the
+/// gather") per scene, set against the seed-to-seed error of `path` and of `ocv` with the
+/// gather everywhere at the same spp (`CV_SEEDS` seeds, CPU time), i.e. what the pilot
+/// predicts against what it should.
+///
+/// ```text
+/// OCV_PILOT="checkers:2,cornell-box:5" CV_SPP=64 CV_SCALE=1 \
+///   cargo test --release -p render --test cv_measure -- --ignored --nocapture ocv_pilot
+/// ```
+#[test]
+#[ignore = "measurement harness, prints only"]
+fn ocv_pilot_choices() {
+    use render::integrator::ocv;
+    let scenes = env_or(
+        "OCV_PILOT",
+        "checkers:2,colour-lamp:5,cornell-box:5,veach-mis:5",
+    );
+    let scale: u32 = env_or("CV_SCALE", "1").parse().unwrap();
+    let spp: u32 = env_or("CV_SPP", "64").parse().unwrap();
+    let seeds: u64 = env_or("CV_SEEDS", "4").parse().unwrap();
+    let est = parse_estimator(&env_or("CV_EST", "ocv"));
+    let render::Estimator::Ocv(o) = est else {
+        panic!("CV_EST must be an ocv spec")
+    };
+    for sd in scenes.split(',') {
+        let (name, d) = sd.split_once(':').expect("scene:depth");
+        let rel = if name.contains('/') {
+            name.to_string()
+        } else {
+            format!("scenes/{name}/scene.json")
+        };
+        let s = cv_support::load_scaled(&rel, scale);
+        let depth: i32 = d.parse().unwrap();
+        let st = render::RenderSettings {
+            spp,
+            max_depth: depth,
+            estimator: est,
+            ..render::RenderSettings::from_scene(&s)
+        };
+        let rs = render::RenderScene::new(&s, &st).expect("scene prepares");
+        let c0 = cpu_seconds();
+        let choice = ocv::choose(&rs, &st, &o);
+        let pilot_cpu = cpu_seconds() - c0;
+        let every = render::Estimator::Ocv(ocv::OcvOptions {
+            min_speedup: None,
+            ..o
+        });
+        let error = |e: render::Estimator| {
+            let (mut films, mut cpu) = (Vec::new(), 0.0);
+            for seed in 0..seeds {
+                let c0 = cpu_seconds();
+                films.push(render(&s, e, spp, seed, Some(depth), RenderOptions::default()).0);
+                cpu += cpu_seconds() - c0;
+            }
+            let mut err = 0.0;
+            for i in 0..films[0].pixels.len() {
+                let ms: Vec<[f64; 3]> = films.iter().map(|f| f.pixels[i].mean()).collect();
+                for c in 0..3 {
+                    let m = ms.iter().map(|a| a[c]).sum::<f64>() / seeds as f64;
+                    let var =
+                        ms.iter().map(|a| (a[c] - m).powi(2)).sum::<f64>() / (seeds - 1) as f64;
+                    err += var / (m * m + 0.01);
+                }
+            }
+            (err, cpu)
+        };
+        let (ep, cp) = error(render::Estimator::Path);
+        let (eo, co) = error(every);
+        println!(
+            "{name} d{d} {spp} spp: pilot {:.2}× (ocv: {}; pilot CPU {:.1} % of path's render); \
+             gather everywhere: equal-spp {:.2}×, CPU ×{:.2}, equal-time {:.2}×",
+            choice.speedup,
+            choice.use_ocv,
+            100.0 * pilot_cpu / (cp / seeds as f64),
+            ep / eo,
+            co / cp,
+            ep / eo * cp / co
+        );
+    }
+}

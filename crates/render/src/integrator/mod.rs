@@ -254,6 +254,8 @@ pub struct RenderScene {
     pub width: u32,
     /// Image height.
     pub height: u32,
+    /// `ocv`'s pilot choices made so far, per settings ([`Self::ocv_choice`]).
+    ocv_choices: std::sync::Mutex<Vec<(RenderSettings, ocv::Choice)>>,
 }
 
 impl std::fmt::Debug for RenderScene {
@@ -301,7 +303,27 @@ impl RenderScene {
             features,
             width,
             height,
+            ocv_choices: std::sync::Mutex::new(Vec::new()),
         })
+    }
+
+    /// `ocv`'s pilot choice for a job with settings `st` ([`ocv::choose`]), made once per
+    /// distinct settings and kept (every tile and task of the job reads it; `cvfarm bench`
+    /// shares one `RenderScene` among its renders). `None` unless `st.estimator` is `ocv`.
+    pub fn ocv_choice(&self, st: &RenderSettings) -> Option<ocv::Choice> {
+        let Estimator::Ocv(o) = &st.estimator else {
+            return None;
+        };
+        let mut cache = self
+            .ocv_choices
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        if let Some((_, c)) = cache.iter().find(|(k, _)| k == st) {
+            return Some(*c);
+        }
+        let c = ocv::choose(self, st, o);
+        cache.push((*st, c));
+        Some(c)
     }
 
     /// The techniques a render with `settings` actually simulates in this scene (for the job

@@ -33,6 +33,27 @@
 //! the component's "null point": value 0, density 1 for its own component and 0 for the
 //! others, so that every component density integrates to one and eq. 7 stays unbiased.
 //!
+//! # Choosing `path` or the gather
+//! A gather costs `spe` samples at every vertex, and where the direct light is not what makes
+//! the image noisy (indirect light in a closed room, `path`'s MIS already good) that cost buys
+//! nothing: the fit's promise is to regress to the baseline. With `min_speedup` set (default
+//! 1.2) a **pilot** ([`choose`]) decides per job whether the gather runs at all; if not, the
+//! job renders `path`'s image (same sampler dimensions, same bits). The pilot renders one
+//! pixel in [`PILOT_STEP`]² with both estimators, twice, from two seeds of its own, half the
+//! job's samples each: half the squared difference of the two is the error of a half-budget
+//! image with the sampler's stratification in it. (A pilot of a few samples per pixel, or
+//! the i.i.d. variance of its samples, does not predict the gather's gain: the gather's
+//! consecutive stratified points converge much faster than its first few samples say — on
+//! `checkers` such a pilot predicted 0.6–1.5× where the image gained 10–50× at equal
+//! samples, `docs/bench/README.md`.) It predicts the equal-time speedup
+//! `(E_path · C_path) / (E_ocv · C_ocv)` from the relative errors `E = Σ_pixels Σ_c d_c² / 2 /
+//! (m_c² + ε)` (ε = 0.01 as in the benches' relMSE) and the rays `C` each traced (an `ocv` ray
+//! weighted by `OCV_RAY_COST`, measured). The choice is a pure function of the job (its seed
+//! and spp included), the same for any tile size, sample range, thread or worker; it is
+//! independent of the image's own samples, which stay unbiased given it. Its cost: about
+//! `(1 + 1.2 r) / PILOT_STEP²` of the job, `r` the gather's cost over `path`'s (≈ 1 % at
+//! `r` = 4).
+//!
 //! # Sampler
 //! The continuation uses `path`'s per-vertex dimensions. Gather sample `i` of component `j`
 //! at vertex `d` is point `spp_index · n_j + i` of a sequence seeded by `(seed, d, j)`, so the
@@ -40,7 +61,7 @@
 
 use glam::{Vec2, Vec3};
 
-use super::path::{PathSample, camera_hit, vertex_dimension};
+use super::path::{self, PathSample, camera_hit, vertex_dimension};
 use super::{RenderScene, RenderSettings};
 use crate::accel::Hit;
 use crate::bsdf::Bsdf;
@@ -485,4 +506,127 @@ pub fn sample_pixel(
         pixel,
         sample_index,
     )
+}
+
+/// One pixel in `PILOT_STEP²` takes part in the pilot: those at the centre of each
+/// `PILOT_STEP × PILOT_STEP` square of the image (the pixel at `(PILOT_STEP/2, PILOT_STEP/2)`
+/// always, so a small image has one).
+pub const PILOT_STEP: u32 = 24;
+
+/// Cost of one of `ocv`'s rays in units of one of `path`'s: a gather's samples also evaluate
+/// the BSDF and the fit. Measured (`cvfarm render`, 8 spp, 1 thread, `path`'s Mrays/s over
+/// `ocv`'s): checkers d2 1.23, colour-lamp d5 1.14, veach-mis d5 1.33, cornell-box d5 1.18,
+/// many-lights d5 1.13, envmap d5 0.89.
+const OCV_RAY_COST: f64 = 1.2;
+
+/// Mixed into the job's seed for the pilot's two randomisations.
+const PILOT_SEED: u64 = 0x7069_6c6f_7400_0001;
+
+/// ε of the pilot's relative error (the benches' relMSE ε).
+const PILOT_EPSILON: f64 = 0.01;
+
+/// Whether pixel `(x, y)` takes part in the pilot.
+#[inline]
+pub fn is_pilot_pixel(x: u32, y: u32) -> bool {
+    x % PILOT_STEP == PILOT_STEP / 2 && y % PILOT_STEP == PILOT_STEP / 2
+        || (x, y) == (PILOT_STEP / 2, PILOT_STEP / 2)
+}
+
+/// What the pilot measured and chose (see the module docs, "Choosing `path` or the gather").
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Choice {
+    /// Predicted equal-time speedup of `ocv` over `path` (`+∞` if `ocv`'s pilot estimates
+    /// did not vary and `path`'s did; `NaN` if neither varied or no pilot ran).
+    pub speedup: f64,
+    /// Render the job with `ocv`'s gather (else as `path`).
+    pub use_ocv: bool,
+    /// Rays the pilot traced.
+    pub rays: u64,
+}
+
+/// The pilot's squared differences of one pixel (per estimator, relative) and its rays.
+struct PilotPixel {
+    var: [f64; 2],
+    rays: [u64; 2],
+}
+
+/// Runs the pilot of a job (`st` with the `ocv` options `opts`) and chooses under
+/// `opts.min_speedup` (see the module docs). With `min_speedup` `None` no pilot runs and the
+/// job uses the gather. The pilot's pixels run on the current rayon pool and are summed in
+/// pixel order, so the choice is the same for any thread count.
+pub fn choose(rs: &RenderScene, st: &RenderSettings, opts: &OcvOptions) -> Choice {
+    use rayon::prelude::*;
+    let Some(min_speedup) = opts.min_speedup else {
+        return Choice {
+            speedup: f64::NAN,
+            use_ocv: true,
+            rays: 0,
+        };
+    };
+    let pilots = [0u64, 1].map(|r| RenderSettings {
+        seed: mix64(st.seed ^ PILOT_SEED ^ r),
+        ..*st
+    });
+    // Each randomisation takes half the job's samples: the difference of the two is the
+    // error of a half-budget image, with the sampler's stratification in it at (about) the
+    // job's own sample count.
+    let half = (st.spp / 2).max(1);
+    let pixels: Vec<(u32, u32)> = (0..rs.height)
+        .flat_map(|y| (0..rs.width).map(move |x| (x, y)))
+        .filter(|&(x, y)| is_pilot_pixel(x, y))
+        .collect();
+    let measured: Vec<PilotPixel> = pixels
+        .par_iter()
+        .map_init(
+            || Scratch::new(rs, opts),
+            |scratch, &(x, y)| {
+                let mut means = [[[0.0f64; 3]; 2]; 2]; // [estimator][randomisation][channel]
+                let mut rays = [0u64; 2];
+                for (r, pst) in pilots.iter().enumerate() {
+                    for s in 0..half {
+                        let p = path::sample_pixel(rs, pst, x, y, s);
+                        let o = sample_pixel(rs, pst, opts, scratch, x, y, s);
+                        for (e, smp) in [p, o].into_iter().enumerate() {
+                            rays[e] += u64::from(smp.rays);
+                            // A non-finite sample counts as the film counts it: zero.
+                            let v = if smp.radiance.is_finite() {
+                                smp.radiance
+                            } else {
+                                Vec3::ZERO
+                            };
+                            for (m, vc) in means[e][r].iter_mut().zip(v.to_array()) {
+                                *m += f64::from(vc) / f64::from(half);
+                            }
+                        }
+                    }
+                }
+                // Relative to the pixel's mean over both estimators and randomisations.
+                let weight = [0, 1, 2].map(|c| {
+                    let m =
+                        (means[0][0][c] + means[0][1][c] + means[1][0][c] + means[1][1][c]) / 4.0;
+                    1.0 / (m * m + PILOT_EPSILON)
+                });
+                let var = means.map(|[a, b]| {
+                    (0..3)
+                        .map(|c| 0.5 * (a[c] - b[c]).powi(2) * weight[c])
+                        .sum::<f64>()
+                });
+                PilotPixel { var, rays }
+            },
+        )
+        .collect();
+    let (mut var, mut rays) = ([0.0; 2], [0u64; 2]);
+    for m in &measured {
+        for e in 0..2 {
+            var[e] += m.var[e];
+            rays[e] += m.rays[e];
+        }
+    }
+    let speedup = (var[0] * rays[0] as f64) / (var[1] * rays[1] as f64 * OCV_RAY_COST);
+    Choice {
+        speedup,
+        // NaN (nothing varied): the cheaper `path`.
+        use_ocv: speedup >= min_speedup,
+        rays: rays[0] + rays[1],
+    }
 }
