@@ -118,7 +118,9 @@ pub fn render_budget(
         .context("creating the thread pool")?;
     let tiles = TileRect::grid(rs.width, rs.height, options.tile_size);
     let mut film = Film::new(rs.width, rs.height);
-    let (mut s0, mut batch, mut rays) = (0u32, 1u32, 0u64);
+    // `ocv`'s pilot on the whole pool, once, before the batches (sized by `st.spp`).
+    let pilot_rays = pool.install(|| rs.ocv_choice(st)).map_or(0, |c| c.rays);
+    let (mut s0, mut batch, mut rays) = (0u32, 1u32, pilot_rays);
     loop {
         let t0 = Instant::now();
         let range = s0..s0.saturating_add(batch);

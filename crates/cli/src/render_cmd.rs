@@ -398,6 +398,8 @@ pub fn run(args: &RenderArgs) -> Result<ExitCode> {
     let secs = stats.seconds.max(1e-9);
     let (samples_per_s, rays_per_s) = (stats.samples as f64 / secs, stats.rays as f64 / secs);
     let mean = film.image_mean();
+    // `ocv`'s pilot choice (made by the render, kept by the prepared scene).
+    let pilot = rs.ocv_choice(&st);
     if let Some(path) = &args.stats {
         let doc = json!({
             "scene": args.scene.display().to_string(),
@@ -411,6 +413,11 @@ pub fn run(args: &RenderArgs) -> Result<ExitCode> {
             "estimator": kind,
             "estimator_options": serde_json::to_value(st.estimator).unwrap_or_default(),
             "estimator_report": rendered.report.clone().unwrap_or_default(),
+            "ocv_pilot": pilot.map(|c| json!({
+                "predicted_speedup": c.speedup,
+                "gather": c.use_ocv,
+                "rays": c.rays,
+            })),
             "time_budget": args.time_budget,
             "threads": args.threads,
             "tile_size": args.tile_size,
@@ -427,7 +434,7 @@ pub fn run(args: &RenderArgs) -> Result<ExitCode> {
             .with_context(|| format!("writing {}", path.display()))?;
     }
     println!(
-        "rendered {}: {width}x{height}, {} spp ({}, max_depth {}) in {:.2} s: {}samples/s, {}rays/s, mean RGB [{:.4}, {:.4}, {:.4}]{} -> {}",
+        "rendered {}: {width}x{height}, {} spp ({}, max_depth {}) in {:.2} s: {}samples/s, {}rays/s, mean RGB [{:.4}, {:.4}, {:.4}]{}{} -> {}",
         args.scene.display(),
         st.spp,
         kind,
@@ -442,6 +449,15 @@ pub fn run(args: &RenderArgs) -> Result<ExitCode> {
             format!(", {} non-finite samples rejected", film.rejected)
         } else {
             String::new()
+        },
+        match pilot {
+            Some(c) if c.speedup.is_nan() && c.use_ocv => String::new(),
+            Some(c) => format!(
+                ", ocv pilot: {:.2}x predicted over path -> {}",
+                c.speedup,
+                if c.use_ocv { "gather" } else { "path" }
+            ),
+            None => String::new(),
         },
         args.output.display(),
     );

@@ -52,7 +52,10 @@
 //! and spp included), the same for any tile size, sample range, thread or worker; it is
 //! independent of the image's own samples, which stay unbiased given it. Its cost: about
 //! `(1 + 1.2 r) / PILOT_STEP²` of the job, `r` the gather's cost over `path`'s (≈ 1 % at
-//! `r` = 4).
+//! `r` = 4). [`RenderScene::ocv_choice`] makes it once per prepared scene and settings: a
+//! local render runs it once on all threads before its tiles, a farm worker once per job
+//! (its first task). A time-budget render (`cvfarm render --time-budget`) sizes it by the
+//! settings' `spp`.
 //!
 //! # Sampler
 //! The continuation uses `path`'s per-vertex dimensions. Gather sample `i` of component `j`
