@@ -28,6 +28,16 @@ fn env_or(key: &str, default: &str) -> String {
     std::env::var(key).unwrap_or_else(|_| default.to_string())
 }
 
+/// A bare name is one of `scenes/`; anything with a `/` is a scene file relative to the
+/// repository root (e.g. `../shared/scenes-mitsuba/manylights-4/scene.xml`).
+fn scene_file(name: &str) -> String {
+    if name.contains('/') {
+        name.to_string()
+    } else {
+        format!("scenes/{name}/scene.json")
+    }
+}
+
 /// `kind[:key=value…]` → estimator (options through serde, as the CLI does).
 fn parse_estimator(spec: &str) -> Estimator {
     let mut parts = spec.split(':');
@@ -66,13 +76,7 @@ fn measure_equal_spp_ratios() {
     for sd in scenes.split(',') {
         let (name, d) = sd.split_once(':').expect("scene:depth");
         let depth: i32 = d.parse().unwrap();
-        // A bare name is one of `scenes/`; anything with a `/` is a scene file relative to
-        // the repository root (e.g. `../shared/scenes-mitsuba/manylights-4/scene.xml`).
-        let rel = if name.contains('/') {
-            name.to_string()
-        } else {
-            format!("scenes/{name}/scene.json")
-        };
+        let rel = scene_file(name);
         let s = cv_support::load_scaled(&rel, scale);
         let (reference, _) = render(&s, Estimator::Path, ref_spp, 4242, Some(depth), opts);
         let run = |e: Estimator| {
@@ -133,11 +137,7 @@ fn ocv_pilot_choices() {
     };
     for sd in scenes.split(',') {
         let (name, d) = sd.split_once(':').expect("scene:depth");
-        let rel = if name.contains('/') {
-            name.to_string()
-        } else {
-            format!("scenes/{name}/scene.json")
-        };
+        let rel = scene_file(name);
         let s = cv_support::load_scaled(&rel, scale);
         let depth: i32 = d.parse().unwrap();
         let st = render::RenderSettings {
@@ -161,16 +161,14 @@ fn ocv_pilot_choices() {
                 films.push(render(&s, e, spp, seed, Some(depth), RenderOptions::default()).0);
                 cpu += cpu_seconds() - c0;
             }
-            let mut err = 0.0;
-            for i in 0..films[0].pixels.len() {
-                let ms: Vec<[f64; 3]> = films.iter().map(|f| f.pixels[i].mean()).collect();
-                for c in 0..3 {
-                    let m = ms.iter().map(|a| a[c]).sum::<f64>() / seeds as f64;
-                    let var =
-                        ms.iter().map(|a| (a[c] - m).powi(2)).sum::<f64>() / (seeds - 1) as f64;
-                    err += var / (m * m + 0.01);
-                }
-            }
+            let images: Vec<Vec<f32>> = films
+                .iter()
+                .map(|f| f.mean_image().into_iter().flatten().collect())
+                .collect();
+            let views: Vec<&[f32]> = images.iter().map(Vec::as_slice).collect();
+            let err = estimators::metrics::seed_variance_error(&views, None)
+                .expect("two or more seeds")
+                .rel_mse;
             (err, cpu)
         };
         let (ep, cp) = error(render::Estimator::Path);

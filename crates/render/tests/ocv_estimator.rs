@@ -27,8 +27,8 @@ fn load(name: &str, width: u32, height: u32) -> scene::Scene {
         .scene
 }
 
-/// The default options with the gather in every block (no pilot choice, `min_speedup`
-/// `None`): the tests of the gather itself.
+/// The default options with the gather always on (no pilot choice, `min_speedup` `None`):
+/// the tests of the gather itself.
 fn everywhere() -> OcvOptions {
     OcvOptions {
         min_speedup: None,

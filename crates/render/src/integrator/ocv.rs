@@ -525,9 +525,6 @@ const OCV_RAY_COST: f64 = 1.2;
 /// Mixed into the job's seed for the pilot's two randomisations.
 const PILOT_SEED: u64 = 0x7069_6c6f_7400_0001;
 
-/// ε of the pilot's relative error (the benches' relMSE ε).
-const PILOT_EPSILON: f64 = 0.01;
-
 /// Whether pixel `(x, y)` takes part in the pilot.
 #[inline]
 pub fn is_pilot_pixel(x: u32, y: u32) -> bool {
@@ -607,7 +604,7 @@ pub fn choose(rs: &RenderScene, st: &RenderSettings, opts: &OcvOptions) -> Choic
                 let weight = [0, 1, 2].map(|c| {
                     let m =
                         (means[0][0][c] + means[0][1][c] + means[1][0][c] + means[1][1][c]) / 4.0;
-                    1.0 / (m * m + PILOT_EPSILON)
+                    1.0 / (m * m + estimators::metrics::REL_MSE_EPSILON)
                 });
                 let var = means.map(|[a, b]| {
                     (0..3)
