@@ -415,6 +415,7 @@ pub fn run(args: &RenderArgs) -> Result<ExitCode> {
             "estimator_report": rendered.report.clone().unwrap_or_default(),
             "ocv_pilot": pilot.map(|c| json!({
                 "predicted_speedup": c.speedup,
+                "predicted_speedup_low": c.speedup_low,
                 "gather": c.use_ocv,
                 "rays": c.rays,
             })),
@@ -453,8 +454,9 @@ pub fn run(args: &RenderArgs) -> Result<ExitCode> {
         match pilot {
             Some(c) if c.speedup.is_nan() && c.use_ocv => String::new(),
             Some(c) => format!(
-                ", ocv pilot: {:.2}x predicted over path -> {}",
+                ", ocv pilot: {:.2}x predicted over path (less one s.e.: {:.2}x) -> {}",
                 c.speedup,
+                c.speedup_low,
                 if c.use_ocv { "gather" } else { "path" }
             ),
             None => String::new(),

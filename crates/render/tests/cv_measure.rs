@@ -150,6 +150,25 @@ fn ocv_pilot_choices() {
         let c0 = cpu_seconds();
         let choice = ocv::choose(&rs, &st, &o);
         let pilot_cpu = cpu_seconds() - c0;
+        // The pilot's spread over job seeds (`CV_PILOT_SEEDS`, default 0 = the one above).
+        let pilot_seeds: u64 = env_or("CV_PILOT_SEEDS", "0").parse().unwrap();
+        if pilot_seeds > 0 {
+            let spread: Vec<String> = (0..pilot_seeds)
+                .map(|seed| {
+                    let c = ocv::choose(&rs, &render::RenderSettings { seed, ..st }, &o);
+                    format!(
+                        "{:.2}/{:.2}{}",
+                        c.speedup,
+                        c.speedup_low,
+                        if c.use_ocv { "*" } else { "" }
+                    )
+                })
+                .collect();
+            println!(
+                "{name} d{d} pilot (prediction/less one s.e.) over seeds (* = gather): {}",
+                spread.join(" ")
+            );
+        }
         let every = render::Estimator::Ocv(ocv::OcvOptions {
             min_speedup: None,
             ..o
@@ -174,9 +193,10 @@ fn ocv_pilot_choices() {
         let (ep, cp) = error(render::Estimator::Path);
         let (eo, co) = error(every);
         println!(
-            "{name} d{d} {spp} spp: pilot {:.2}× (ocv: {}; pilot CPU {:.1} % of path's render); \
+            "{name} d{d} {spp} spp: pilot {:.2}× (less one s.e. {:.2}×, ocv: {}; pilot CPU {:.1} % of path's render); \
              gather everywhere: equal-spp {:.2}×, CPU ×{:.2}, equal-time {:.2}×",
             choice.speedup,
+            choice.speedup_low,
             choice.use_ocv,
             100.0 * pilot_cpu / (cp / seeds as f64),
             ep / eo,

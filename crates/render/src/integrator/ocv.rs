@@ -39,7 +39,8 @@
 //! nothing: the fit's promise is to regress to the baseline. With `min_speedup` set (default
 //! 1.2) a **pilot** ([`choose`]) decides per job whether the gather runs at all; if not, the
 //! job renders `path`'s image (same sampler dimensions, same bits). The pilot renders one
-//! pixel in [`PILOT_STEP`]² with both estimators, twice, from two seeds of its own, half the
+//! pixel in [`PILOT_STEP`]² (at least [`MIN_PILOT_PIXELS`] on a small image: [`pilot_step`])
+//! with both estimators, twice, from two seeds of its own, half the
 //! job's samples each: half the squared difference of the two is the error of a half-budget
 //! image with the sampler's stratification in it. (A pilot of a few samples per pixel, or
 //! the i.i.d. variance of its samples, does not predict the gather's gain: the gather's
@@ -48,11 +49,15 @@
 //! samples, `docs/bench/README.md`.) It predicts the equal-time speedup
 //! `(E_path · C_path) / (E_ocv · C_ocv)` from the relative errors `E = Σ_pixels Σ_c d_c² / 2 /
 //! (m_c² + ε)` (ε = 0.01 as in the benches' relMSE) and the rays `C` each traced (an `ocv` ray
-//! weighted by `OCV_RAY_COST`, measured). The choice is a pure function of the job (its seed
+//! weighted by `OCV_RAY_COST`, measured). Each pixel's `d²` is one or a few degrees of
+//! freedom, so a pilot of few pixels is noisy: the prediction less one jackknife standard
+//! error over the pixels (`Choice::speedup_low`) is what must reach `min_speedup`. A wrong
+//! `path` loses the gather's gain; a wrong gather can cost 4× (Cornell box: 0.24×).
+//! The choice is a pure function of the job (its seed
 //! and spp included), the same for any tile size, sample range, thread or worker; it is
 //! independent of the image's own samples, which stay unbiased given it. Its cost: about
 //! `(1 + 1.2 r) / PILOT_STEP²` of the job, `r` the gather's cost over `path`'s (≈ 1 % at
-//! `r` = 4). [`RenderScene::ocv_choice`] makes it once per prepared scene and settings: a
+//! `r` = 4; ≈ 2.5 % on a 128×128 image, where the pilot takes 64 pixels). [`RenderScene::ocv_choice`] makes it once per prepared scene and settings: a
 //! local render runs it once on all threads before its tiles, a farm worker once per job
 //! (its first task). A time-budget render (`cvfarm render --time-budget`) sizes it by the
 //! settings' `spp`.
@@ -511,10 +516,14 @@ pub fn sample_pixel(
     )
 }
 
-/// One pixel in `PILOT_STEP²` takes part in the pilot: those at the centre of each
-/// `PILOT_STEP × PILOT_STEP` square of the image (the pixel at `(PILOT_STEP/2, PILOT_STEP/2)`
-/// always, so a small image has one).
+/// Pilot pixels sit at the centre of each `step × step` square of the image; the step is
+/// `PILOT_STEP` unless that leaves fewer than [`MIN_PILOT_PIXELS`] pixels ([`pilot_step`]).
 pub const PILOT_STEP: u32 = 24;
+
+/// The fewest pixels a pilot takes (as far as the image has them). With 25 (a 128×128 image
+/// at `PILOT_STEP`) the prediction spread over job seeds from 0.35× to 2.6× on Mitsuba's
+/// `manylights-4` (measured: `cv_measure::ocv_pilot_choices`, `CV_PILOT_SEEDS`).
+pub const MIN_PILOT_PIXELS: u32 = 64;
 
 /// Cost of one of `ocv`'s rays in units of one of `path`'s: a gather's samples also evaluate
 /// the BSDF and the fit. Measured (`cvfarm render`, 8 spp, 1 thread, `path`'s Mrays/s over
@@ -525,11 +534,23 @@ const OCV_RAY_COST: f64 = 1.2;
 /// Mixed into the job's seed for the pilot's two randomisations.
 const PILOT_SEED: u64 = 0x7069_6c6f_7400_0001;
 
-/// Whether pixel `(x, y)` takes part in the pilot.
+/// The pilot's lattice step for a `width × height` image: the largest step ≤ `PILOT_STEP`
+/// whose lattice has [`MIN_PILOT_PIXELS`] pixels (1 if none has).
+pub fn pilot_step(width: u32, height: u32) -> u32 {
+    let count = |step: u32| {
+        let along = |n: u32| n.saturating_sub(step / 2).div_ceil(step);
+        along(width) * along(height)
+    };
+    (1..=PILOT_STEP)
+        .rev()
+        .find(|&step| count(step) >= MIN_PILOT_PIXELS)
+        .unwrap_or(1)
+}
+
+/// Whether pixel `(x, y)` takes part in a pilot of lattice `step` ([`pilot_step`]).
 #[inline]
-pub fn is_pilot_pixel(x: u32, y: u32) -> bool {
-    x % PILOT_STEP == PILOT_STEP / 2 && y % PILOT_STEP == PILOT_STEP / 2
-        || (x, y) == (PILOT_STEP / 2, PILOT_STEP / 2)
+pub fn is_pilot_pixel(x: u32, y: u32, step: u32) -> bool {
+    x % step == step / 2 && y % step == step / 2
 }
 
 /// What the pilot measured and chose (see the module docs, "Choosing `path` or the gather").
@@ -538,6 +559,9 @@ pub struct Choice {
     /// Predicted equal-time speedup of `ocv` over `path` (`+∞` if `ocv`'s pilot estimates
     /// did not vary and `path`'s did; `NaN` if neither varied or no pilot ran).
     pub speedup: f64,
+    /// The prediction less one standard error: `speedup · exp(−σ)`, σ the jackknife standard
+    /// error of `ln speedup` over the pilot's pixels. This is what meets `min_speedup`.
+    pub speedup_low: f64,
     /// Render the job with `ocv`'s gather (else as `path`).
     pub use_ocv: bool,
     /// Rays the pilot traced.
@@ -550,6 +574,25 @@ struct PilotPixel {
     rays: [u64; 2],
 }
 
+/// Jackknife standard error of `ln(Σ path var / Σ ocv var)` over the pilot's pixels (leave
+/// one pixel out). `+∞` if a single pixel holds all of either sum (or fewer than two pixels).
+fn jackknife_log_ratio_se(measured: &[PilotPixel], total: [f64; 2]) -> f64 {
+    let n = measured.len();
+    if n < 2 {
+        return f64::INFINITY;
+    }
+    let loo: Vec<f64> = measured
+        .iter()
+        .map(|m| ((total[0] - m.var[0]) / (total[1] - m.var[1])).ln())
+        .collect();
+    if loo.iter().any(|l| !l.is_finite()) {
+        return f64::INFINITY;
+    }
+    let mean = loo.iter().sum::<f64>() / n as f64;
+    let ss: f64 = loo.iter().map(|l| (l - mean).powi(2)).sum();
+    (ss * (n - 1) as f64 / n as f64).sqrt()
+}
+
 /// Runs the pilot of a job (`st` with the `ocv` options `opts`) and chooses under
 /// `opts.min_speedup` (see the module docs). With `min_speedup` `None` no pilot runs and the
 /// job uses the gather. The pilot's pixels run on the current rayon pool and are summed in
@@ -559,21 +602,24 @@ pub fn choose(rs: &RenderScene, st: &RenderSettings, opts: &OcvOptions) -> Choic
     let Some(min_speedup) = opts.min_speedup else {
         return Choice {
             speedup: f64::NAN,
+            speedup_low: f64::NAN,
             use_ocv: true,
             rays: 0,
         };
     };
+    // Two randomisations per job seed, disjoint from every other job seed's.
     let pilots = [0u64, 1].map(|r| RenderSettings {
-        seed: mix64(st.seed ^ PILOT_SEED ^ r),
+        seed: mix64(mix64(st.seed ^ PILOT_SEED).wrapping_add(r)),
         ..*st
     });
     // Each randomisation takes half the job's samples: the difference of the two is the
     // error of a half-budget image, with the sampler's stratification in it at (about) the
     // job's own sample count.
     let half = (st.spp / 2).max(1);
+    let step = pilot_step(rs.width, rs.height);
     let pixels: Vec<(u32, u32)> = (0..rs.height)
         .flat_map(|y| (0..rs.width).map(move |x| (x, y)))
-        .filter(|&(x, y)| is_pilot_pixel(x, y))
+        .filter(|&(x, y)| is_pilot_pixel(x, y, step))
         .collect();
     let measured: Vec<PilotPixel> = pixels
         .par_iter()
@@ -622,11 +668,119 @@ pub fn choose(rs: &RenderScene, st: &RenderSettings, opts: &OcvOptions) -> Choic
             rays[e] += m.rays[e];
         }
     }
-    let speedup = (var[0] * rays[0] as f64) / (var[1] * rays[1] as f64 * OCV_RAY_COST);
+    let cost = rays[0] as f64 / (rays[1] as f64 * OCV_RAY_COST);
+    let speedup = var[0] / var[1] * cost;
+    let speedup_low = speedup * (-jackknife_log_ratio_se(&measured, var)).exp();
     Choice {
         speedup,
+        speedup_low,
         // NaN (nothing varied): the cheaper `path`.
-        use_ocv: speedup >= min_speedup,
+        use_ocv: speedup_low >= min_speedup || (min_speedup == 0.0 && !speedup.is_nan()),
         rays: rays[0] + rays[1],
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The lattice of [`pilot_step`] holds [`MIN_PILOT_PIXELS`] where the image has them,
+    /// keeps `PILOT_STEP` on a large image, and [`is_pilot_pixel`] selects exactly the count
+    /// the step was chosen by.
+    #[test]
+    fn the_pilot_lattice_has_enough_pixels() {
+        let count = |w: u32, h: u32, step: u32| {
+            (0..h)
+                .flat_map(|y| (0..w).map(move |x| (x, y)))
+                .filter(|&(x, y)| is_pilot_pixel(x, y, step))
+                .count() as u32
+        };
+        assert_eq!(pilot_step(1920, 1080), PILOT_STEP);
+        assert_eq!(count(1920, 1080, PILOT_STEP), 80 * 45);
+        for (w, h) in [
+            (128, 128),
+            (100, 75),
+            (256, 64),
+            (37, 23),
+            (8, 8),
+            (1, 1),
+            (3, 200),
+        ] {
+            let step = pilot_step(w, h);
+            let n = count(w, h, step);
+            if step > 1 {
+                assert!(n >= MIN_PILOT_PIXELS, "{w}x{h}: step {step}, {n} pixels");
+                // The largest such step: one more leaves too few.
+                if step < PILOT_STEP {
+                    assert!(count(w, h, step + 1) < MIN_PILOT_PIXELS, "{w}x{h}");
+                }
+            } else {
+                assert_eq!(n, w * h, "{w}x{h}: every pixel");
+            }
+        }
+    }
+
+    /// Pilot pixels with the measured errors `(a, b)` of path and the gather.
+    fn pixels(ab: &[(f64, f64)]) -> (Vec<PilotPixel>, [f64; 2]) {
+        let m: Vec<PilotPixel> = ab
+            .iter()
+            .map(|&(a, b)| PilotPixel {
+                var: [a, b],
+                rays: [1, 1],
+            })
+            .collect();
+        let total = [ab.iter().map(|p| p.0).sum(), ab.iter().map(|p| p.1).sum()];
+        (m, total)
+    }
+
+    /// The jackknife's ends: pixels that all have one ratio leave no doubt; a pilot whose
+    /// error is all in one pixel (or that has one pixel) leaves no confidence.
+    #[test]
+    fn the_jackknife_is_zero_for_one_ratio_and_infinite_for_one_pixel() {
+        let (m, t) = pixels(&[(2.0, 1.0), (6.0, 3.0), (0.5, 0.25)]);
+        assert!(jackknife_log_ratio_se(&m, t) < 1e-12);
+        let (m, t) = pixels(&[(2.0, 1.0), (0.0, 0.0), (0.0, 0.0)]);
+        assert_eq!(jackknife_log_ratio_se(&m, t), f64::INFINITY);
+        let (m, t) = pixels(&[(2.0, 1.0)]);
+        assert_eq!(jackknife_log_ratio_se(&m, t), f64::INFINITY);
+    }
+
+    /// The jackknife's standard error matches the spread it stands for. Pixels whose squared
+    /// differences are χ²₁-distributed (as the pilot's two randomisations give) with scales
+    /// spread over two decades: over 400 pilots of 64 pixels the mean jackknife σ agrees with
+    /// the standard deviation of `ln ratio` within 20 % (the sampling error of a standard
+    /// deviation from 400 draws is ≈ 3.5 %; the jackknife is itself a first-order method).
+    #[test]
+    fn the_jackknife_matches_the_spread_of_the_ratio() {
+        let mut state = 7u64;
+        let mut uniform = || {
+            state = mix64(state.wrapping_add(0x9e37_79b9_7f4a_7c15));
+            ((state >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+        };
+        let mut normal = || {
+            let (u, v) = (uniform(), uniform());
+            (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+        };
+        let (mut logs, mut ses) = (Vec::new(), Vec::new());
+        for _ in 0..400 {
+            let ab: Vec<(f64, f64)> = (0..64)
+                .map(|i| {
+                    let scale = 10f64.powf(2.0 * f64::from(i) / 63.0);
+                    let (za, zb) = (normal(), normal());
+                    (scale * za * za, 0.5 * scale * zb * zb)
+                })
+                .collect();
+            let (m, t) = pixels(&ab);
+            logs.push((t[0] / t[1]).ln());
+            ses.push(jackknife_log_ratio_se(&m, t));
+        }
+        let n = logs.len() as f64;
+        let mean = logs.iter().sum::<f64>() / n;
+        let sd = (logs.iter().map(|l| (l - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
+        let se = ses.iter().sum::<f64>() / n;
+        assert!((se / sd - 1.0).abs() < 0.2, "jackknife {se} vs spread {sd}");
+        // `ln` of the ratio is symmetric about the truth (both sums have one shape): its mean
+        // is ln 2 within four standard errors.
+        assert!((mean - 2f64.ln()).abs() < 4.0 * sd / n.sqrt(), "{mean}");
     }
 }
