@@ -99,7 +99,7 @@ impl PhaseSamples {
 /// | `penalize_intercept` | bool | false | literal [Fan eq. 11]: also penalise β0 (shrinks each estimate by ≈ λ/(N+λ); see [`crate::ocv`]) |
 /// | `optimize` | bool | true | false: plain deterministic-mixture estimate [Fan eq. 6] (Fan's MIS baseline) |
 /// | `max_light_components` | u32 | 16 | with more lights than this, or fewer than two `spe` per light and BSDF component, all lights form **one** component sampled by the light selection (Fan §7's advice for many lights) |
-/// | `min_speedup` | f64 or `null` | 1.2 | the gather runs only where a pilot (one pixel in 576, both estimators, two seeds of half the job's samples) predicts at least this equal-time speedup over `path`; else the job renders `path`'s image; `null`: always the gather (`render::integrator::ocv`, "Choosing `path` or the gather"; 1.2: a margin over the pilot's ±20 % error) |
+/// | `min_speedup` | f64 or `null` | 1.2 | the gather runs only where a pilot (one pixel in 576, at least 64 pixels; both estimators, two seeds of half the job's samples) predicts at least this equal-time speedup over `path` less one standard error of its own; else the job renders `path`'s image; `null`: always the gather (`render::integrator::ocv`, "Choosing `path` or the gather") |
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct OcvOptions {
