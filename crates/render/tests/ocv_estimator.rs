@@ -546,15 +546,14 @@ fn the_ocv_pilot_does_not_depend_on_threads_or_tiles() {
     assert_eq!(a.speedup.to_bits(), b.speedup.to_bits());
     assert_eq!(a.speedup_low.to_bits(), b.speedup_low.to_bits());
     assert_eq!((a.use_ocv, a.rays), (b.use_ocv, b.rays));
+    let rs = RenderScene::new(&scene, &st).expect("prepare");
     // Another job seed, another pilot: seeds 8 and 9 share no randomisation (an xor of the
     // seed with the randomisation's index once gave them the same two).
-    let rs = RenderScene::new(&scene, &st).expect("prepare");
     let other = ocv::choose(&rs, &RenderSettings { seed: 8, ..st }, &o);
     assert!(
         (other.speedup / a.speedup - 1.0).abs() > 1e-6,
         "{other:?} vs {a:?}"
     );
-    let rs = RenderScene::new(&scene, &st).expect("prepare");
     let run = |tile_size, threads| {
         render_image(&rs, &st, &RenderOptions { tile_size, threads }, &|_, _| {})
             .expect("render")

@@ -57,8 +57,9 @@
 //! and spp included), the same for any tile size, sample range, thread or worker; it is
 //! independent of the image's own samples, which stay unbiased given it. Its cost: about
 //! `(1 + 1.2 r) / PILOT_STEP²` of the job, `r` the gather's cost over `path`'s (≈ 1 % at
-//! `r` = 4; ≈ 2.5 % on a 128×128 image, where the pilot takes 64 pixels). [`RenderScene::ocv_choice`] makes it once per prepared scene and settings: a
-//! local render runs it once on all threads before its tiles, a farm worker once per job
+//! `r` = 4; 1.5–2.1 % measured on 128×128 images, where the pilot takes 64 pixels).
+//! [`RenderScene::ocv_choice`] makes it once per prepared scene and settings: a local render
+//! runs it once on all threads before its tiles, a farm worker once per job
 //! (its first task). A time-budget render (`cvfarm render --time-budget`) sizes it by the
 //! settings' `spp`.
 //!
@@ -560,7 +561,8 @@ pub struct Choice {
     /// did not vary and `path`'s did; `NaN` if neither varied or no pilot ran).
     pub speedup: f64,
     /// The prediction less one standard error: `speedup · exp(−σ)`, σ the jackknife standard
-    /// error of `ln speedup` over the pilot's pixels. This is what meets `min_speedup`.
+    /// error of `ln speedup` over the pilot's pixels (an infinite prediction stays infinite).
+    /// This is what meets `min_speedup`.
     pub speedup_low: f64,
     /// Render the job with `ocv`'s gather (else as `path`).
     pub use_ocv: bool,
@@ -591,6 +593,17 @@ fn jackknife_log_ratio_se(measured: &[PilotPixel], total: [f64; 2]) -> f64 {
     let mean = loo.iter().sum::<f64>() / n as f64;
     let ss: f64 = loo.iter().map(|l| (l - mean).powi(2)).sum();
     (ss * (n - 1) as f64 / n as f64).sqrt()
+}
+
+/// `speedup · exp(−se)`, the prediction less one standard error of its log. A finite
+/// prediction of unknown error (`se` = ∞) falls to 0, which only `min_speedup` 0 accepts; an
+/// infinite one (the gather's pilot estimates never varied, `path`'s did) stays infinite.
+fn less_one_se(speedup: f64, se: f64) -> f64 {
+    if speedup.is_infinite() {
+        speedup
+    } else {
+        speedup * (-se).exp()
+    }
 }
 
 /// Runs the pilot of a job (`st` with the `ocv` options `opts`) and chooses under
@@ -670,12 +683,12 @@ pub fn choose(rs: &RenderScene, st: &RenderSettings, opts: &OcvOptions) -> Choic
     }
     let cost = rays[0] as f64 / (rays[1] as f64 * OCV_RAY_COST);
     let speedup = var[0] / var[1] * cost;
-    let speedup_low = speedup * (-jackknife_log_ratio_se(&measured, var)).exp();
+    let speedup_low = less_one_se(speedup, jackknife_log_ratio_se(&measured, var));
     Choice {
         speedup,
         speedup_low,
         // NaN (nothing varied): the cheaper `path`.
-        use_ocv: speedup_low >= min_speedup || (min_speedup == 0.0 && !speedup.is_nan()),
+        use_ocv: speedup_low >= min_speedup,
         rays: rays[0] + rays[1],
     }
 }
@@ -743,6 +756,17 @@ mod tests {
         assert_eq!(jackknife_log_ratio_se(&m, t), f64::INFINITY);
         let (m, t) = pixels(&[(2.0, 1.0)]);
         assert_eq!(jackknife_log_ratio_se(&m, t), f64::INFINITY);
+    }
+
+    /// The margin's ends: a known error shrinks the prediction, an unknown one leaves 0 (only
+    /// `min_speedup` 0 passes), a gather that never varied keeps its infinite prediction, and
+    /// a pilot where nothing varied stays NaN (`path`).
+    #[test]
+    fn the_margin_keeps_the_ends_of_the_prediction() {
+        assert!((less_one_se(2.0, 2f64.ln()) - 1.0).abs() < 1e-12);
+        assert_eq!(less_one_se(2.0, f64::INFINITY), 0.0);
+        assert_eq!(less_one_se(f64::INFINITY, f64::INFINITY), f64::INFINITY);
+        assert!(less_one_se(f64::NAN, 0.1).is_nan());
     }
 
     /// The jackknife's standard error matches the spread it stands for. Pixels whose squared
