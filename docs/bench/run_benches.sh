@@ -8,7 +8,9 @@
 # bench budget, default 30), SPP_SERIES (default 32,64,…,512), SCENES (default: colour-lamp many-lights veach-mis envmap cornell-box; empty for none),
 # DEPTHS (default: 2 5), ESTIMATORS (default: path,cms), SEEDS (renders per point, default 3:
 # the error is then the seed-to-seed variance of one render, free of the reference's own noise;
-# the reference only normalises), OUT (default docs/bench: where the <scene>_d<D> directories go).
+# the reference only normalises), OUT (default docs/bench: where the <scene>_d<D> directories go),
+# SAMPLER (sobol or independent, default sobol: the sampler of every bench render; references
+# are always Sobol `path` renders).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 BIN=${BIN:-target/release/cvfarm}
@@ -21,6 +23,7 @@ DEPTHS=${DEPTHS:-"2 5"}
 ESTIMATORS=${ESTIMATORS:-path,cms}
 SEEDS=${SEEDS:-3}
 OUT=${OUT:-docs/bench}
+SAMPLER=${SAMPLER:-sobol}
 mkdir -p out/bench-ref
 for scene in $SCENES; do
   for d in $DEPTHS; do
@@ -31,7 +34,7 @@ for scene in $SCENES; do
     fi
     "$BIN" bench "scenes/$scene/scene.json" --estimators "$ESTIMATORS" --max-depth "$d" \
       --reference "$ref" --max-seconds "$MAX_SECONDS" --spp-series "$SPP_SERIES" --seeds "$SEEDS" \
-      --out "$OUT/${scene}_d${d}"
+      --sampler "$SAMPLER" --out "$OUT/${scene}_d${d}"
   done
 done
 # The shared Mitsuba scenes (MITSUBA_SCENES, default below; empty to skip) at their native
@@ -42,5 +45,5 @@ for s in $MITSUBA_SCENES; do
   name=$(basename "$s")
   "$BIN" bench "$SHARED/$s/scene.xml" --estimators "$ESTIMATORS" --max-depth 5 \
     --reference "$SHARED/refs/${name}_d5.exr" --max-seconds 60 --spp-series 128,256,512 \
-    --seeds "$SEEDS" --out "$OUT/mitsuba-${name}_d5"
+    --seeds "$SEEDS" --sampler "$SAMPLER" --out "$OUT/mitsuba-${name}_d5"
 done

@@ -491,6 +491,7 @@ fn target_rel_mse_stops(backend: Backend) {
         height: 32,
         spp: 64,
         seed: 5,
+        sampler: Default::default(),
         max_depth: 5,
         rr_depth: 5,
         hide_emitters: false,

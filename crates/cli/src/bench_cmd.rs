@@ -36,7 +36,7 @@
 //! | `--spp-series LIST` | 1,2,4,… | explicit sample counts |
 //! | `--clock C` | `cpu` | `cpu` (process CPU seconds) or `wall` for the comparisons |
 //! | `--seeds N` | 1 | renders per point (seeds `seed…seed+N−1`); N ≥ 2: seed-variance error, mean seconds |
-//! | `--seed`, `--threads`, `--res`, `--tile-size`, `-D` | as `render` | |
+//! | `--seed`, `--sampler`, `--threads`, `--res`, `--tile-size`, `-D` | as `render` | |
 //!
 //! ```text
 //! $ cvfarm bench scenes/checkers/scene.json --estimators path,ocv:spe=64 --reference ref.exr --out docs/bench/checkers_d2
@@ -89,6 +89,9 @@ pub struct BenchArgs {
     /// any, only normalises) and the seconds are the renders' mean.
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=64))]
     pub seeds: u32,
+    /// Where the sample numbers come from (every estimator alike).
+    #[arg(long, value_enum, default_value_t = crate::render_cmd::SamplerArg::Sobol)]
+    pub sampler: crate::render_cmd::SamplerArg,
     /// Render threads (0 = all cores).
     #[arg(long, default_value_t = 0)]
     pub threads: usize,
@@ -480,6 +483,7 @@ pub fn run(args: &BenchArgs) -> Result<ExitCode> {
     let base = RenderSettings::from_scene(&scene);
     let st0 = RenderSettings {
         seed: args.seed,
+        sampler: args.sampler.kind(),
         max_depth: args.max_depth.unwrap_or(base.max_depth),
         ..base
     };
@@ -599,12 +603,13 @@ pub fn run(args: &BenchArgs) -> Result<ExitCode> {
     let title = format!("{name}, max_depth {}", st0.max_depth);
     let notes = vec![
         format!(
-            "scene `{}`, {}x{}, max_depth {}, seed {}",
+            "scene `{}`, {}x{}, max_depth {}, seed {}, sampler {}",
             args.scene.display(),
             rs.width,
             rs.height,
             st0.max_depth,
-            args.seed
+            args.seed,
+            args.sampler.name()
         ),
         match &args.reference {
             _ if args.seeds >= 2 => format!(
@@ -637,7 +642,7 @@ pub fn run(args: &BenchArgs) -> Result<ExitCode> {
             load_average(),
         ),
         format!(
-            "rerun: `cvfarm bench {} --estimators {} --max-depth {} --max-seconds {} --clock {} --seed {} --seeds {}{}{}{}`",
+            "rerun: `cvfarm bench {} --estimators {} --max-depth {} --max-seconds {} --clock {} --seed {} --seeds {}{}{}{}{}`",
             args.scene.display(),
             items
                 .iter()
@@ -652,6 +657,10 @@ pub fn run(args: &BenchArgs) -> Result<ExitCode> {
             },
             args.seed,
             args.seeds,
+            match args.sampler {
+                crate::render_cmd::SamplerArg::Sobol => String::new(),
+                s => format!(" --sampler {}", s.name()),
+            },
             args.res
                 .map(|r| format!(" --res {}x{}", r.width, r.height))
                 .unwrap_or_default(),

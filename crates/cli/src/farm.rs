@@ -111,6 +111,9 @@ pub struct SubmitArgs {
     /// Sampler seed.
     #[arg(long, env = "CVFARM_SEED", default_value_t = 0)]
     pub seed: u64,
+    /// Where the sample numbers come from.
+    #[arg(long, env = "CVFARM_SAMPLER", value_enum, default_value_t = crate::render_cmd::SamplerArg::Sobol)]
+    pub sampler: crate::render_cmd::SamplerArg,
     /// Film size override, e.g. 320x240.
     #[arg(long, env = "CVFARM_RES", value_name = "WxH")]
     pub res: Option<String>,
@@ -331,6 +334,7 @@ pub fn submit(args: &SubmitArgs) -> Result<ExitCode> {
             "assets": assets,
             "estimator": estimator_json(args)?,
             "seed": args.seed,
+            "sampler": args.sampler.name(),
             "tile_size": args.tile_size,
             "priority": args.priority,
         });

@@ -100,6 +100,9 @@ pub struct RenderArgs {
     /// How NEE picks a light.
     #[arg(long, env = "CVFARM_LIGHT_SELECTION", value_enum, default_value_t = LightSelectionArg::Uniform)]
     pub light_selection: LightSelectionArg,
+    /// Where the sample numbers come from.
+    #[arg(long, env = "CVFARM_SAMPLER", value_enum, default_value_t = SamplerArg::Sobol)]
+    pub sampler: SamplerArg,
     /// Hide directly visible emitters [default: the scene's].
     #[arg(long, env = "CVFARM_HIDE_EMITTERS", value_parser = clap::builder::BoolishValueParser::new())]
     pub hide_emitters: bool,
@@ -174,6 +177,34 @@ pub enum MisArg {
     Balance,
 }
 
+/// The `--sampler` values (`render::sampler::SamplerKind`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, ValueEnum)]
+pub enum SamplerArg {
+    /// Owen-scrambled Sobol points per pixel (stratified; the default).
+    #[default]
+    Sobol,
+    /// Independent uniform numbers (Mitsuba's `independent`; the papers' baseline).
+    Independent,
+}
+
+impl SamplerArg {
+    /// The renderer's sampler kind.
+    pub fn kind(self) -> render::sampler::SamplerKind {
+        match self {
+            Self::Sobol => render::sampler::SamplerKind::Sobol,
+            Self::Independent => render::sampler::SamplerKind::Independent,
+        }
+    }
+
+    /// The name on the command line and in a job's `sampler`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Sobol => "sobol",
+            Self::Independent => "independent",
+        }
+    }
+}
+
 /// The `--light-selection` values.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub enum LightSelectionArg {
@@ -231,6 +262,7 @@ pub fn settings(scene: &scene::Scene, args: &RenderArgs) -> Result<RenderSetting
             LightSelectionArg::Power => LightSelection::Power,
         },
         estimator: args.estimator.build()?,
+        sampler: args.sampler.kind(),
     };
     st.validate()?;
     Ok(st)

@@ -182,6 +182,10 @@ pub const DEFAULT_MIN_IMAGE_GAIN: f64 = 3e-4;
 /// "Within a technique").
 pub const DEFAULT_MIN_FIT_GAIN: f64 = 0.2;
 
+/// `cms`'s `min_depth` with a per-pixel stratified (Sobol) sampler: the camera hit keeps the
+/// base estimate ([`CmsOptions`]).
+pub const MIN_DEPTH_STRATIFIED: u32 = 1;
+
 /// Options of the `cms` estimator [Hua 2023].
 ///
 /// | parameter | type | default | meaning |
@@ -197,7 +201,7 @@ pub const DEFAULT_MIN_FIT_GAIN: f64 = 0.2;
 /// | `base` | `"mis"` \| `"balance"` | `"mis"` | base estimator (`α ≡ 0`): the job's MIS heuristic (= `path`) or balance [`CvBase`] |
 /// | `min_image_gain` | f64 \| null | `3e-4` | the fits are applied only when they are predicted to remove at least this fraction of the image's per-sample (relative) variance, measured on the training samples ([`crate::table::predicted_image_gain`]); below it every cell falls back and the render phase is traced as `path`; a training tile whose own first 2 spp predict less than half of it stops recording (`render::integrator::cv::TRAIN_PROBE_SPP`). null always applies them. Chosen by equal-spp and equal-time measurements (`docs/bench/README.md`) |
 /// | `min_fit_gain` | f64 \| null | `0.2` | the fits are applied only when they remove at least this fraction of the variance at the vertices they control (within each technique: the estimator takes one NEE and one BSDF sample, so the spread between the two techniques is no variance of it), over all cells, measured on the training samples ([`crate::table::predicted_fit_gain`]); below it every cell falls back and the render phase is traced as `path`. It bounds the equal-spp gain at `1/(1 − g)` whatever the image's noise is made of, so a small one cannot pay for the CV's per-sample cost; a training tile whose own first 2 spp predict less than half of it stops recording. null always applies them. Chosen by equal-spp and equal-time measurements (`docs/bench/README.md`) |
-/// | `min_depth` | u32 | `1` | the CV is trained and applied only at path vertices of at least this depth (0 = the camera hit); shallower vertices use the base estimator. With 1, depth-2 (direct-lighting) jobs are exactly `path`. Chosen by equal-spp measurements (`docs/bench/README.md`): the CV at the camera hit costs more than it gains against the stratified (Sobol) pixel samples of the base estimator |
+/// | `min_depth` | u32 \| null | null | the CV is trained and applied only at path vertices of at least this depth (0 = the camera hit); shallower vertices use the base estimator. null = by the job's sampler ([`PhasedEstimator::for_sampler`]): **1 with the Sobol sampler** (depth-2, direct-lighting jobs are then exactly `path`: the CV at the camera hit costs more than it gains against the per-pixel stratified Sobol samples), **0 with the independent one** (there the camera hit's direct lighting is where colour noise is: colour-lamp d2 3.58× at equal time). Chosen by equal-spp and equal-time measurements (`docs/bench/README.md`) |
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct CmsOptions {
@@ -219,8 +223,9 @@ pub struct CmsOptions {
     pub min_samples: u64,
     /// Base estimator of the controlled direct lighting.
     pub base: CvBase,
-    /// Shallowest vertex depth the CV is trained and applied at.
-    pub min_depth: u32,
+    /// Shallowest vertex depth the CV is trained and applied at; `None` = by the sampler
+    /// ([`PhasedEstimator::for_sampler`]).
+    pub min_depth: Option<u32>,
     /// Smallest predicted image gain for the fits to be applied; `None` always applies them.
     pub min_image_gain: Option<f64>,
     /// Smallest predicted fit gain for the fits to be applied; `None` always applies them.
@@ -239,7 +244,7 @@ impl Default for CmsOptions {
             ridge: 0.5,
             min_samples: 16,
             base: CvBase::Mis,
-            min_depth: 1,
+            min_depth: None,
             min_image_gain: Some(DEFAULT_MIN_IMAGE_GAIN),
             min_fit_gain: Some(DEFAULT_MIN_FIT_GAIN),
         }
@@ -398,12 +403,31 @@ impl PhasedEstimator {
         }
     }
 
-    /// Shallowest vertex depth the CV is trained and applied at (`cms`'s `min_depth`; 0 for
-    /// the others).
+    /// Shallowest vertex depth the CV is trained and applied at (`cms`'s `min_depth`, a
+    /// `None` read as the Sobol sampler's 1; 0 for the others). Resolve a job's `None` with
+    /// [`Self::for_sampler`] first.
     pub fn min_depth(&self) -> u32 {
         match self {
-            Self::Cms(o) => o.min_depth,
+            Self::Cms(o) => o.min_depth.unwrap_or(MIN_DEPTH_STRATIFIED),
             _ => 0,
+        }
+    }
+
+    /// The estimator with its sampler-dependent defaults filled in: `cms`'s `min_depth`
+    /// `None` becomes [`MIN_DEPTH_STRATIFIED`] when the job's sample numbers are stratified
+    /// per pixel (the Sobol sampler) and 0 when they are independent. Every consumer of a
+    /// job (phase planner, renderer) resolves through this, so they agree.
+    pub fn for_sampler(self, stratified: bool) -> Self {
+        match self {
+            Self::Cms(o) => Self::Cms(CmsOptions {
+                min_depth: Some(o.min_depth.unwrap_or(if stratified {
+                    MIN_DEPTH_STRATIFIED
+                } else {
+                    0
+                })),
+                ..o
+            }),
+            other => other,
         }
     }
 
@@ -530,10 +554,21 @@ mod tests {
         assert_eq!((p.surrogate, p.train, p.render), (0..0, 0..0, 0..64));
         assert_eq!(cms.phases(64, 3).train, 1..17);
         let first_hit = PhasedEstimator::Cms(CmsOptions {
-            min_depth: 0,
+            min_depth: Some(0),
             ..CmsOptions::default()
         });
         assert_eq!(first_hit.phases(64, 2).train, 1..17);
+        // The default by sampler: the independent one controls the camera hit, Sobol not;
+        // an explicit value wins over both.
+        assert_eq!(cms.for_sampler(false).min_depth(), 0);
+        assert_eq!(cms.for_sampler(false).phases(64, 2).train, 1..17);
+        assert_eq!(cms.for_sampler(true).min_depth(), 1);
+        assert_eq!(first_hit.for_sampler(true).min_depth(), 0);
+        let two = PhasedEstimator::Cms(CmsOptions {
+            min_depth: Some(2),
+            ..CmsOptions::default()
+        });
+        assert_eq!(two.for_sampler(false).min_depth(), 2);
         let om = PhasedEstimator::OptimalMis(Default::default());
         assert!(om.controls_any_vertex(2) && !om.controls_any_vertex(1));
     }

@@ -387,6 +387,7 @@ mod tests {
             height: 2,
             spp: 4,
             seed: 0,
+            sampler: Default::default(),
             max_depth: 5,
             rr_depth: 5,
             hide_emitters: false,

@@ -14,6 +14,7 @@
 //! | `resolution` | `[w, h]` | scene's film | output size override |
 //! | `max_depth` | int | scene's | path-length override (Mitsuba meaning, −1 = unbounded) |
 //! | `seed` | int | 0 | sampler seed: same spec + seed ⇒ same image bits |
+//! | `sampler` | `"sobol"` \| `"independent"` | `"sobol"` | Owen-scrambled Sobol points per pixel, or independent numbers (Mitsuba's `independent` sampler, the papers' baseline); a scene file's `<sampler type>` is not used |
 //! | `tile_size` | int | 32 | tile edge in pixels (8..=512) |
 //! | `samples_per_task` | int | `spp` | sample range length per task (splits tiles in time) |
 //! | `priority` | int | 0 | higher runs first; FIFO within a priority |
@@ -71,6 +72,9 @@ pub struct JobSpec {
     /// Sampler seed.
     #[serde(default)]
     pub seed: u64,
+    /// Where the sample numbers come from.
+    #[serde(default, skip_serializing_if = "SamplerKind::is_default")]
+    pub sampler: SamplerKind,
     /// Tile edge in pixels.
     #[serde(default = "default_tile_size")]
     pub tile_size: u32,
@@ -236,6 +240,24 @@ pub enum LightSelection {
     Power,
 }
 
+/// Where a job's sample numbers come from (`render::sampler::SamplerKind` on the wire).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SamplerKind {
+    /// Owen-scrambled Sobol points per pixel.
+    #[default]
+    Sobol,
+    /// Independent uniform numbers per sample and dimension.
+    Independent,
+}
+
+impl SamplerKind {
+    /// Whether this is the default (`sobol`), which the wire omits.
+    pub fn is_default(&self) -> bool {
+        *self == Self::default()
+    }
+}
+
 /// Server-side limits a spec must respect (explicit, documented, configurable).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Limits {
@@ -310,6 +332,9 @@ pub struct ResolvedJob {
     pub spp: u32,
     /// Sampler seed.
     pub seed: u64,
+    /// Where the sample numbers come from (absent on the wire: `sobol`).
+    #[serde(default, skip_serializing_if = "SamplerKind::is_default")]
+    pub sampler: SamplerKind,
     /// Path-length limit.
     pub max_depth: i32,
     /// Russian-roulette start depth.
@@ -440,6 +465,7 @@ impl JobSpec {
             height,
             spp: self.spp,
             seed: self.seed,
+            sampler: self.sampler,
             max_depth,
             rr_depth: scene.integrator.rr_depth,
             hide_emitters: scene.integrator.hide_emitters,
@@ -545,6 +571,7 @@ fn phase_shapes(job: &ResolvedJob, est: &EstimatorSpec) -> Vec<(PhaseKind, u32, 
         return vec![(PhaseKind::Render, job.tile_size, 0..job.spp, spt)];
     };
     let max_depth = u32::try_from(job.max_depth).unwrap_or(u32::MAX); // −1: unbounded
+    let p = p.for_sampler(job.sampler == SamplerKind::Sobol);
     let ph = p.phases(job.spp, max_depth);
     let mut out = Vec::with_capacity(3);
     // The surrogate exists only for relative-variance training [Hua eq. 25] (as in
@@ -698,6 +725,24 @@ mod tests {
         assert!(e.to_string().contains("bogus"), "{e}");
         let e = spec(serde_json::json!({"sppp": 4})).unwrap_err();
         assert!(e.to_string().contains("sppp"), "{e}");
+    }
+
+    #[test]
+    fn the_sampler_defaults_to_sobol_is_resolved_and_a_bad_one_is_named() {
+        let s = spec(serde_json::json!({})).unwrap();
+        assert_eq!(s.sampler, SamplerKind::Sobol);
+        let r = s.resolve(&scene(), &Limits::default()).unwrap();
+        assert_eq!(r.sampler, SamplerKind::Sobol);
+        // The default is not written: a Sobol job's wire form is what it was before the
+        // option existed.
+        assert!(serde_json::to_value(r).unwrap().get("sampler").is_none());
+        let s = spec(serde_json::json!({"sampler": "independent"})).unwrap();
+        let r = s.resolve(&scene(), &Limits::default()).unwrap();
+        assert_eq!(r.sampler, SamplerKind::Independent);
+        let back: ResolvedJob = serde_json::from_value(serde_json::to_value(r).unwrap()).unwrap();
+        assert_eq!(back, r);
+        let e = spec(serde_json::json!({"sampler": "halton"})).unwrap_err();
+        assert!(e.to_string().contains("halton"), "{e}");
     }
 
     #[test]

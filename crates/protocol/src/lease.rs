@@ -341,6 +341,7 @@ mod tests {
                 height: 8,
                 spp: 4,
                 seed: 1,
+                sampler: Default::default(),
                 max_depth: 5,
                 rr_depth: 5,
                 hide_emitters: false,

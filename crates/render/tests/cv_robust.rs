@@ -25,7 +25,7 @@ fn estimators() -> Vec<Estimator> {
             training_spp: 4,
             grid_resolution: Some([8, 8, 8]),
             // Also the camera hit (the default `min_depth` 1 leaves it to the base).
-            min_depth: 0,
+            min_depth: Some(0),
             min_image_gain: None,
             min_fit_gain: None,
             ..CmsOptions::default()
@@ -515,10 +515,12 @@ fn cms_at_depth_two_is_path() {
             let (cv, report) = render(&s, e, 24, 5, Some(2), opts);
             (worst_relative_difference(&cv, &p), report.cells_solved)
         };
-        let (d1, solved1) = diff(1);
+        let (d1, solved1) = diff(Some(1));
         assert_eq!(solved1, 0, "{rel}");
+        // The default with the (default) Sobol sampler is 1.
+        assert_eq!(diff(None), (d1, solved1), "{rel}");
         assert!(d1 <= 1e-9, "{rel}: min_depth 1 differs from path by {d1}");
-        let (d0, solved0) = diff(0);
+        let (d0, solved0) = diff(Some(0));
         assert!(
             solved0 > 0 && d0 > 1e-6,
             "{rel}: min_depth 0 {d0} ({solved0} cells)"

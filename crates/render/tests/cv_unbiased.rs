@@ -4,10 +4,11 @@
 
 mod cv_support;
 
-use cv_support::{load, mean_se, region_mean, render};
+use cv_support::{load, mean_se, region_mean, render, render_sampled};
 use render::integrator::cms::CmsOptions;
 use render::integrator::optimal_mis::OptimalMisOptions;
 use render::integrator::per_light_cv::PerLightCvOptions;
+use render::sampler::SamplerKind;
 use render::{Estimator, RenderOptions};
 
 const W: u32 = 24;
@@ -27,6 +28,25 @@ fn regions() -> Vec<(u32, u32, u32, u32)> {
 /// Checks the region means of `seeds` renders against a `path` reference; returns the
 /// smallest number of cells solved (with coefficients) over the renders.
 fn check(scene_rel: &str, estimator: Estimator, seeds: u64, spp: u32, ref_spp: u32) -> u64 {
+    check_sampled(
+        scene_rel,
+        estimator,
+        seeds,
+        spp,
+        ref_spp,
+        SamplerKind::Sobol,
+    )
+}
+
+/// [`check`] with the estimator's renders drawn by `sampler` (the reference: Sobol `path`).
+fn check_sampled(
+    scene_rel: &str,
+    estimator: Estimator,
+    seeds: u64,
+    spp: u32,
+    ref_spp: u32,
+    sampler: SamplerKind,
+) -> u64 {
     let s = load(scene_rel, W, H);
     let depth = Some(3);
     let opts = RenderOptions::default();
@@ -34,7 +54,7 @@ fn check(scene_rel: &str, estimator: Estimator, seeds: u64, spp: u32, ref_spp: u
     let mut per_seed: Vec<Vec<[f64; 3]>> = Vec::new();
     let mut solved = u64::MAX;
     for seed in 0..seeds {
-        let (f, report) = render(&s, estimator, spp, seed, depth, opts);
+        let (f, report) = render_sampled(&s, estimator, spp, seed, depth, opts, sampler);
         assert!(cv_support::all_finite(&f));
         assert!(report.render_spp > 0, "{report:?}");
         solved = solved.min(report.cells_solved);
@@ -93,6 +113,29 @@ fn cms_coarse() -> Estimator {
 #[test]
 fn cms_is_unbiased_on_colour_lamp() {
     assert!(check("scenes/colour-lamp/scene.json", cms_coarse(), 16, 16, 1024) > 0);
+}
+
+/// The independent sampler (the papers' baseline) with the CV at every vertex, the camera
+/// hit included: `path` and `cms` stay unbiased against the Sobol reference.
+#[test]
+fn path_and_cms_at_every_vertex_are_unbiased_with_the_independent_sampler() {
+    let every_vertex = match cms_coarse() {
+        Estimator::Cms(o) => Estimator::Cms(CmsOptions {
+            min_depth: Some(0),
+            ..o
+        }),
+        _ => unreachable!(),
+    };
+    let scene = "scenes/colour-lamp/scene.json";
+    check_sampled(
+        scene,
+        Estimator::Path,
+        16,
+        16,
+        1024,
+        SamplerKind::Independent,
+    );
+    assert!(check_sampled(scene, every_vertex, 16, 16, 1024, SamplerKind::Independent) > 0);
 }
 
 #[test]

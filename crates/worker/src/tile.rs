@@ -157,6 +157,12 @@ impl Prepared {
             mis,
             light_selection,
             estimator: est,
+            sampler: match job.sampler {
+                protocol::job::SamplerKind::Sobol => render::sampler::SamplerKind::Sobol,
+                protocol::job::SamplerKind::Independent => {
+                    render::sampler::SamplerKind::Independent
+                }
+            },
         };
         let scene = RenderScene::new(&loaded.scene, &settings)?;
         let p = Self {
@@ -353,6 +359,7 @@ mod tests {
             height: 12,
             spp,
             seed: 3,
+            sampler: Default::default(),
             max_depth: 5,
             rr_depth: 5,
             hide_emitters: false,
@@ -422,11 +429,22 @@ mod tests {
     }
 
     fn local_equals_in_process_driver_at(est: EstimatorSpec, seed: u64, max_depth: i32) {
+        local_equals_in_process_driver_with(est, seed, max_depth, Default::default());
+    }
+
+    /// Checks the farm's bits against the in-process driver's; returns the farm's beauty.
+    fn local_equals_in_process_driver_with(
+        est: EstimatorSpec,
+        seed: u64,
+        max_depth: i32,
+        sampler: protocol::job::SamplerKind,
+    ) -> Vec<f32> {
         let j = ResolvedJob {
             width: 48,
             height: 32,
             spp: 24,
             seed,
+            sampler,
             max_depth,
             rr_depth: 5,
             hide_emitters: false,
@@ -446,9 +464,10 @@ mod tests {
             &|_, _| {},
         )
         .unwrap();
-        let controls = est
-            .phased()
-            .is_some_and(|p| p.controls_any_vertex(max_depth as u32));
+        let controls = est.phased().is_some_and(|p| {
+            p.for_sampler(sampler == protocol::job::SamplerKind::Sobol)
+                .controls_any_vertex(max_depth as u32)
+        });
         assert_eq!(report.cells > 0, controls, "{report:?}");
         let layers = film.layers();
         let flat = |i: usize| -> Vec<u32> {
@@ -467,11 +486,28 @@ mod tests {
         assert!(bits(&farm.normal) == flat(3), "normal differs");
         assert!(farm.spp.iter().all(|&n| n == 24));
         assert!(farm.beauty.iter().any(|&v| v > 0.0));
+        farm.beauty
     }
 
     #[test]
     fn cms_render_local_equals_render_estimator_image_bitwise() {
         local_equals_in_process_driver(EstimatorSpec::Cms(Default::default()), 9);
+    }
+
+    /// A job's `sampler` reaches the renderer: the independent sampler's farm image is the
+    /// in-process one bit for bit and not the Sobol image; the planner resolves `cms`'s
+    /// sampler-dependent `min_depth` as the renderer does.
+    #[test]
+    fn the_jobs_sampler_reaches_the_renderer() {
+        use protocol::job::SamplerKind;
+        let cms = EstimatorSpec::Cms(Default::default());
+        let sobol = local_equals_in_process_driver_with(cms.clone(), 9, 5, SamplerKind::Sobol);
+        let independent = local_equals_in_process_driver_with(cms, 9, 5, SamplerKind::Independent);
+        assert!(sobol != independent);
+        // At depth 2 the independent sampler's default `min_depth` 0 controls the camera
+        // hit: the farm plans a training phase and its bits are still the driver's.
+        let cms = EstimatorSpec::Cms(Default::default());
+        local_equals_in_process_driver_with(cms, 9, 2, SamplerKind::Independent);
     }
 
     /// With the default `min_depth` 1 a depth-2 `cms` job controls nothing: one render phase
@@ -485,6 +521,7 @@ mod tests {
             height: 32,
             spp: 24,
             seed: 9,
+            sampler: Default::default(),
             max_depth: 2,
             rr_depth: 5,
             hide_emitters: false,

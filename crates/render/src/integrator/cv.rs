@@ -1129,6 +1129,8 @@ impl<'a> CvJob<'a> {
         let Some(estimator) = settings.estimator.phased() else {
             return Ok(None);
         };
+        let estimator =
+            estimator.for_sampler(settings.sampler == crate::sampler::SamplerKind::Sobol);
         if let Err((field, reason)) = estimator.validate() {
             return Err(RenderError::InvalidSetting { field, reason });
         }
@@ -1951,7 +1953,7 @@ fn run_tile(
                     }
                     continue;
                 }
-                let mut sampler = Sampler::new(st.seed, pixel, s);
+                let mut sampler = Sampler::of_kind(st.sampler, st.seed, pixel, s);
                 let u = sampler.first_2d();
                 let ray = rs.camera.ray(Vec2::new(x as f32 + u.x, y as f32 + u.y));
                 let phase = match (kind, table) {

@@ -31,6 +31,7 @@
 //! | `hide_emitters` | bool | scene's | directly visible emitters are skipped (area lights) or black (env) |
 //! | `mis` | `power` \| `balance` | `power` | MIS heuristic for NEE vs BSDF sampling |
 //! | `light_selection` | `uniform` \| `power` | `uniform` | how NEE picks an emitter |
+//! | `sampler` | `sobol` \| `independent` | `sobol` | Owen-scrambled Sobol points per pixel, or independent numbers (Mitsuba's `independent`, the papers' baseline) ([`crate::sampler::SamplerKind`]) |
 //!
 //! ```json
 //! { "spp": 256, "seed": 7, "max_depth": 5, "rr_depth": 6, "mis": "power" }
@@ -50,6 +51,7 @@ use crate::accel::Accel;
 use crate::bsdf::MaterialTable;
 use crate::camera::Camera;
 use crate::light::{LightSelection, Lights};
+use crate::sampler::SamplerKind;
 
 /// The estimator a job renders with (closed set; dispatched with `match`).
 ///
@@ -130,6 +132,8 @@ pub struct RenderSettings {
     pub light_selection: LightSelection,
     /// Estimator.
     pub estimator: Estimator,
+    /// Where the sample numbers come from.
+    pub sampler: SamplerKind,
 }
 
 impl RenderSettings {
@@ -153,6 +157,7 @@ impl RenderSettings {
             mis: MisHeuristic::Power,
             light_selection: LightSelection::Uniform,
             estimator: Estimator::Path,
+            sampler: SamplerKind::Sobol,
         }
     }
 

@@ -205,7 +205,7 @@ fn gather(
         let seed = st.seed ^ mix64(0x0cf5_0000 ^ (u64::from(depth) << 32) ^ j as u64);
         for i in 0..n_j {
             let index = sample_index.wrapping_mul(n_j as u32).wrapping_add(i as u32);
-            let mut sampler = Sampler::new(seed, pixel, index);
+            let mut sampler = Sampler::of_kind(st.sampler, seed, pixel, index);
             let u0 = sampler.next_1d();
             let u = sampler.next_2d();
             let row = scratch.pdfs.len();
@@ -502,7 +502,7 @@ pub fn sample_pixel(
     sample_index: u32,
 ) -> PathSample {
     let pixel = y * rs.width + x;
-    let mut sampler = Sampler::new(st.seed, pixel, sample_index);
+    let mut sampler = Sampler::of_kind(st.sampler, st.seed, pixel, sample_index);
     let u = sampler.next_2d();
     let ray = rs.camera.ray(Vec2::new(x as f32 + u.x, y as f32 + u.y));
     trace(

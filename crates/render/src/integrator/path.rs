@@ -352,7 +352,8 @@ pub fn sample_pixel(
     y: u32,
     sample_index: u32,
 ) -> PathSample {
-    let mut sampler = Sampler::new(
+    let mut sampler = Sampler::of_kind(
+        st.sampler,
         st.seed,
         y.wrapping_mul(rs.width).wrapping_add(x),
         sample_index,
