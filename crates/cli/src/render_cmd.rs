@@ -440,6 +440,7 @@ pub fn run(args: &RenderArgs) -> Result<ExitCode> {
             "height": height,
             "spp": st.spp,
             "seed": st.seed,
+            "sampler": args.sampler.name(),
             "max_depth": st.max_depth,
             "rr_depth": st.rr_depth,
             "estimator": kind,

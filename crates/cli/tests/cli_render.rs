@@ -140,6 +140,54 @@ fn same_seed_gives_identical_image_whatever_threads_and_tiles() {
     assert_ne!(beauty(&a).2, beauty(&c).2, "seed has no effect");
 }
 
+/// `--sampler independent` (also `CVFARM_SAMPLER`) gives another image, the same for any
+/// thread count, and the statistics name it.
+#[test]
+fn the_independent_sampler_is_deterministic_and_recorded() {
+    let dir = scratch("sampler");
+    let sc = scene("cornell-box");
+    let render_with = |out: &std::path::Path, threads: &str, sampler: Option<&str>| {
+        let mut cmd = cvfarm();
+        cmd.args([
+            "render",
+            s(&sc),
+            "--spp",
+            "3",
+            "--res",
+            "24x16",
+            "--threads",
+            threads,
+        ])
+        .args(["-o", s(out), "--stats", s(&out.with_extension("json"))]);
+        if let Some(k) = sampler {
+            cmd.env("CVFARM_SAMPLER", k);
+        }
+        ok(&cmd.output().unwrap());
+        let st: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.with_extension("json")).unwrap()).unwrap();
+        (beauty(out).2, st["sampler"].as_str().unwrap().to_string())
+    };
+    let (sobol, k0) = render_with(&dir.join("sobol.exr"), "1", None);
+    let (a, k1) = render_with(&dir.join("a.exr"), "1", Some("independent"));
+    let (b, _) = render_with(&dir.join("b.exr"), "2", Some("independent"));
+    assert_eq!((k0.as_str(), k1.as_str()), ("sobol", "independent"));
+    assert_eq!(a, b, "the independent image depends on the thread count");
+    assert_ne!(a, sobol, "--sampler has no effect");
+    let o = cvfarm()
+        .args([
+            "render",
+            s(&sc),
+            "--sampler",
+            "halton",
+            "-o",
+            s(&dir.join("x.exr")),
+        ])
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("halton"));
+}
+
 #[test]
 fn environment_variables_set_flags() {
     let dir = scratch("env_vars");
