@@ -4,7 +4,7 @@
 
 mod cv_support;
 
-use cv_support::{load, mean_se, region_mean, render, render_sampled};
+use cv_support::{load, mean_se, region_mean, render, render_with};
 use render::integrator::cms::CmsOptions;
 use render::integrator::optimal_mis::OptimalMisOptions;
 use render::integrator::per_light_cv::PerLightCvOptions;
@@ -48,13 +48,21 @@ fn check_sampled(
     sampler: SamplerKind,
 ) -> u64 {
     let s = load(scene_rel, W, H);
-    let depth = Some(3);
+    let depth = 3;
     let opts = RenderOptions::default();
-    let (reference, _) = render(&s, Estimator::Path, ref_spp, 999, depth, opts);
+    let (reference, _) = render(&s, Estimator::Path, ref_spp, 999, Some(depth), opts);
     let mut per_seed: Vec<Vec<[f64; 3]>> = Vec::new();
     let mut solved = u64::MAX;
     for seed in 0..seeds {
-        let (f, report) = render_sampled(&s, estimator, spp, seed, depth, opts, sampler);
+        let st = render::RenderSettings {
+            spp,
+            seed,
+            estimator,
+            sampler,
+            max_depth: depth,
+            ..render::RenderSettings::from_scene(&s)
+        };
+        let (f, report) = render_with(&s, &st, opts);
         assert!(cv_support::all_finite(&f));
         assert!(report.render_spp > 0, "{report:?}");
         solved = solved.min(report.cells_solved);

@@ -4,7 +4,6 @@
 use std::path::{Path, PathBuf};
 
 use render::integrator::cv::{EstimatorReport, render_estimator_image};
-use render::sampler::SamplerKind;
 use render::{Estimator, Film, RenderOptions, RenderScene, RenderSettings};
 
 /// Repository root.
@@ -41,29 +40,24 @@ pub fn render(
     max_depth: Option<i32>,
     opts: RenderOptions,
 ) -> (Film, EstimatorReport) {
-    render_sampled(s, estimator, spp, seed, max_depth, opts, SamplerKind::Sobol)
-}
-
-/// [`render`] with the sampler `sampler`.
-pub fn render_sampled(
-    s: &scene::Scene,
-    estimator: Estimator,
-    spp: u32,
-    seed: u64,
-    max_depth: Option<i32>,
-    opts: RenderOptions,
-    sampler: SamplerKind,
-) -> (Film, EstimatorReport) {
     let st = RenderSettings {
         spp,
         seed,
         estimator,
-        sampler,
         max_depth: max_depth.unwrap_or(s.integrator.max_depth),
         ..RenderSettings::from_scene(s)
     };
-    let rs = RenderScene::new(s, &st).expect("scene prepares");
-    let (film, _, report) = render_estimator_image(&rs, &st, &opts, &|_, _| {}).expect("renders");
+    render_with(s, &st, opts)
+}
+
+/// [`render`] with the settings `st` (e.g. another sampler).
+pub fn render_with(
+    s: &scene::Scene,
+    st: &RenderSettings,
+    opts: RenderOptions,
+) -> (Film, EstimatorReport) {
+    let rs = RenderScene::new(s, st).expect("scene prepares");
+    let (film, _, report) = render_estimator_image(&rs, st, &opts, &|_, _| {}).expect("renders");
     (film, report)
 }
 
