@@ -182,6 +182,26 @@ pub const DEFAULT_MIN_IMAGE_GAIN: f64 = 3e-4;
 /// "Within a technique").
 pub const DEFAULT_MIN_FIT_GAIN: f64 = 0.2;
 
+/// Where a job's sample numbers come from (job option `sampler`; the renderer's
+/// `render::sampler::SamplerKind` and the wire's `sampler` alike).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SamplerKind {
+    /// Owen-scrambled Sobol points per pixel (white noise past 256 dimensions or 2¹⁶
+    /// samples).
+    #[default]
+    Sobol,
+    /// Independent uniform numbers: the hashed stream at every dimension and sample.
+    Independent,
+}
+
+impl SamplerKind {
+    /// Whether this is the default (`sobol`), which the wire omits.
+    pub fn is_default(&self) -> bool {
+        *self == Self::default()
+    }
+}
+
 /// `cms`'s `min_depth` with a per-pixel stratified (Sobol) sampler: the camera hit keeps the
 /// base estimate ([`CmsOptions`]).
 pub const MIN_DEPTH_STRATIFIED: u32 = 1;
@@ -414,16 +434,15 @@ impl PhasedEstimator {
     }
 
     /// The estimator with its sampler-dependent defaults filled in: `cms`'s `min_depth`
-    /// `None` becomes [`MIN_DEPTH_STRATIFIED`] when the job's sample numbers are stratified
-    /// per pixel (the Sobol sampler) and 0 when they are independent. Every consumer of a
-    /// job (phase planner, renderer) resolves through this, so they agree.
-    pub fn for_sampler(self, stratified: bool) -> Self {
+    /// `None` becomes [`MIN_DEPTH_STRATIFIED`] with the Sobol sampler (stratified per pixel)
+    /// and 0 with independent numbers. Every consumer of a job (phase planner, renderer)
+    /// resolves through this, so they agree.
+    pub fn for_sampler(self, sampler: SamplerKind) -> Self {
         match self {
             Self::Cms(o) => Self::Cms(CmsOptions {
-                min_depth: Some(o.min_depth.unwrap_or(if stratified {
-                    MIN_DEPTH_STRATIFIED
-                } else {
-                    0
+                min_depth: Some(o.min_depth.unwrap_or(match sampler {
+                    SamplerKind::Sobol => MIN_DEPTH_STRATIFIED,
+                    SamplerKind::Independent => 0,
                 })),
                 ..o
             }),
@@ -560,15 +579,16 @@ mod tests {
         assert_eq!(first_hit.phases(64, 2).train, 1..17);
         // The default by sampler: the independent one controls the camera hit, Sobol not;
         // an explicit value wins over both.
-        assert_eq!(cms.for_sampler(false).min_depth(), 0);
-        assert_eq!(cms.for_sampler(false).phases(64, 2).train, 1..17);
-        assert_eq!(cms.for_sampler(true).min_depth(), 1);
-        assert_eq!(first_hit.for_sampler(true).min_depth(), 0);
+        let (sobol, independent) = (SamplerKind::Sobol, SamplerKind::Independent);
+        assert_eq!(cms.for_sampler(independent).min_depth(), 0);
+        assert_eq!(cms.for_sampler(independent).phases(64, 2).train, 1..17);
+        assert_eq!(cms.for_sampler(sobol).min_depth(), 1);
+        assert_eq!(first_hit.for_sampler(sobol).min_depth(), 0);
         let two = PhasedEstimator::Cms(CmsOptions {
             min_depth: Some(2),
             ..CmsOptions::default()
         });
-        assert_eq!(two.for_sampler(false).min_depth(), 2);
+        assert_eq!(two.for_sampler(independent).min_depth(), 2);
         let om = PhasedEstimator::OptimalMis(Default::default());
         assert!(om.controls_any_vertex(2) && !om.controls_any_vertex(1));
     }

@@ -35,7 +35,7 @@ use std::ops::Range;
 
 pub use estimators::spec::{
     CmsOptions, CvColor, OcvOptions, OptimalMisOptions, PerLightCvOptions, PhasedEstimator,
-    TRAIN_TILE,
+    SamplerKind, TRAIN_TILE,
 };
 use serde::{Deserialize, Serialize};
 
@@ -238,24 +238,6 @@ pub enum LightSelection {
     Uniform,
     /// Proportional to emitted power.
     Power,
-}
-
-/// Where a job's sample numbers come from (`render::sampler::SamplerKind` on the wire).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum SamplerKind {
-    /// Owen-scrambled Sobol points per pixel.
-    #[default]
-    Sobol,
-    /// Independent uniform numbers per sample and dimension.
-    Independent,
-}
-
-impl SamplerKind {
-    /// Whether this is the default (`sobol`), which the wire omits.
-    pub fn is_default(&self) -> bool {
-        *self == Self::default()
-    }
 }
 
 /// Server-side limits a spec must respect (explicit, documented, configurable).
@@ -571,7 +553,7 @@ fn phase_shapes(job: &ResolvedJob, est: &EstimatorSpec) -> Vec<(PhaseKind, u32, 
         return vec![(PhaseKind::Render, job.tile_size, 0..job.spp, spt)];
     };
     let max_depth = u32::try_from(job.max_depth).unwrap_or(u32::MAX); // −1: unbounded
-    let p = p.for_sampler(job.sampler == SamplerKind::Sobol);
+    let p = p.for_sampler(job.sampler);
     let ph = p.phases(job.spp, max_depth);
     let mut out = Vec::with_capacity(3);
     // The surrogate exists only for relative-variance training [Hua eq. 25] (as in

@@ -24,6 +24,7 @@
 
 use std::sync::OnceLock;
 
+pub use estimators::spec::SamplerKind;
 use glam::Vec2;
 use sobol_burley::parts::Int4;
 
@@ -104,17 +105,6 @@ const NO_SET: u32 = u32::MAX / 2;
 #[inline(always)]
 fn pair_start(set: u32) -> u32 {
     set.saturating_sub(1) | u32::from(set != 0)
-}
-
-/// Where a job's sample numbers come from (job option `sampler`).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
-pub enum SamplerKind {
-    /// Owen-scrambled Sobol points per pixel (white noise past 256 dimensions or 2¹⁶
-    /// samples).
-    #[default]
-    Sobol,
-    /// Independent uniform numbers: the hashed stream at every dimension and sample.
-    Independent,
 }
 
 /// A sampler positioned at one (pixel, sample index); cheap to create (no allocation).

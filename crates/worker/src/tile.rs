@@ -157,12 +157,7 @@ impl Prepared {
             mis,
             light_selection,
             estimator: est,
-            sampler: match job.sampler {
-                protocol::job::SamplerKind::Sobol => render::sampler::SamplerKind::Sobol,
-                protocol::job::SamplerKind::Independent => {
-                    render::sampler::SamplerKind::Independent
-                }
-            },
+            sampler: job.sampler,
         };
         let scene = RenderScene::new(&loaded.scene, &settings)?;
         let p = Self {
@@ -464,10 +459,9 @@ mod tests {
             &|_, _| {},
         )
         .unwrap();
-        let controls = est.phased().is_some_and(|p| {
-            p.for_sampler(sampler == protocol::job::SamplerKind::Sobol)
-                .controls_any_vertex(max_depth as u32)
-        });
+        let controls = est
+            .phased()
+            .is_some_and(|p| p.for_sampler(sampler).controls_any_vertex(max_depth as u32));
         assert_eq!(report.cells > 0, controls, "{report:?}");
         let layers = film.layers();
         let flat = |i: usize| -> Vec<u32> {

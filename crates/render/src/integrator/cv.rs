@@ -1129,8 +1129,7 @@ impl<'a> CvJob<'a> {
         let Some(estimator) = settings.estimator.phased() else {
             return Ok(None);
         };
-        let estimator =
-            estimator.for_sampler(settings.sampler == crate::sampler::SamplerKind::Sobol);
+        let estimator = estimator.for_sampler(settings.sampler);
         if let Err((field, reason)) = estimator.validate() {
             return Err(RenderError::InvalidSetting { field, reason });
         }
