@@ -206,6 +206,12 @@ impl SamplerKind {
 /// base estimate ([`CmsOptions`]).
 pub const MIN_DEPTH_STRATIFIED: u32 = 1;
 
+/// `cms`'s `ridge` with a per-pixel stratified (Sobol) sampler ([`CmsOptions`]).
+pub const RIDGE_STRATIFIED: f64 = 0.5;
+
+/// `cms`'s `ridge` with independent numbers ([`CmsOptions`]).
+pub const RIDGE_INDEPENDENT: f64 = 0.1;
+
 /// Options of the `cms` estimator [Hua 2023].
 ///
 /// | parameter | type | default | meaning |
@@ -216,7 +222,7 @@ pub const MIN_DEPTH_STRATIFIED: u32 = 1;
 /// | `surrogate_spp` | u32 | 1 | samples per pixel of the surrogate image (only with `relative`; kept in the image) |
 /// | `grid_resolution` | `[nx, ny, nz]` \| null | null | cells per axis over the scene bounds; null = adaptive (≈ 16×16 pixels per cell) |
 /// | `max_light_components` | u32 | 1024 | more emitters than this are clustered by spatial proximity |
-/// | `ridge` | f64 | `0.5` | relative Tikhonov regularisation of each cell system: `A + ridge·diag(A)` shrinks `α` toward the base estimator (`path` with the default `base`); 0.5 scales an uncorrelated coefficient by 2/3. Chosen by equal-spp measurements (`docs/bench/README.md`, "The ridge with `min_depth` 1"): with the CV off the camera hit, 1 shrank colour-lamp's fits too far (1.42× → 1.53× at 0.5), and below 0.5 many-lights' sparsely sampled lights lose |
+/// | `ridge` | f64 \| null | null | relative Tikhonov regularisation of each cell system: `A + ridge·diag(A)` shrinks `α` toward the base estimator (`path` with the default `base`); 0.5 scales an uncorrelated coefficient by 2/3. null = by the job's sampler ([`PhasedEstimator::for_sampler`]): **0.5 with the Sobol sampler** ([`RIDGE_STRATIFIED`]: the fits minimise the variance of independent samples, which overstates the per-pixel stratified `path`'s, so they are shrunk toward it; 1 shrank colour-lamp's fits too far, 1.42× → 1.53× at 0.5, and below 0.5 many-lights' sparsely sampled lights lose), **0.1 with the independent one** ([`RIDGE_INDEPENDENT`]: there the fits' objective is the estimator's variance, and less shrinking gains 3–10 % at equal spp on colour-lamp, `manylights-4` and veach-mis d2). Chosen by equal-spp measurements (`docs/bench/README.md`) |
 /// | `min_samples` | u64 | 16 | cells with fewer training samples fall back to the plain estimator |
 /// | `base` | `"mis"` \| `"balance"` | `"mis"` | base estimator (`α ≡ 0`): the job's MIS heuristic (= `path`) or balance [`CvBase`] |
 /// | `min_image_gain` | f64 \| null | `3e-4` | the fits are applied only when they are predicted to remove at least this fraction of the image's per-sample (relative) variance, measured on the training samples ([`crate::table::predicted_image_gain`]); below it every cell falls back and the render phase is traced as `path`; a training tile whose own first 2 spp predict less than half of it stops recording (`render::integrator::cv::TRAIN_PROBE_SPP`). null always applies them. Chosen by equal-spp and equal-time measurements (`docs/bench/README.md`) |
@@ -237,8 +243,9 @@ pub struct CmsOptions {
     pub grid_resolution: Option<[u32; 3]>,
     /// Clustering threshold for emitters.
     pub max_light_components: u32,
-    /// Relative ridge of the cell solves.
-    pub ridge: f64,
+    /// Relative ridge of the cell solves; `None` = by the sampler
+    /// ([`PhasedEstimator::for_sampler`]).
+    pub ridge: Option<f64>,
     /// Minimum training samples per cell.
     pub min_samples: u64,
     /// Base estimator of the controlled direct lighting.
@@ -261,7 +268,7 @@ impl Default for CmsOptions {
             surrogate_spp: 1,
             grid_resolution: None,
             max_light_components: 1024,
-            ridge: 0.5,
+            ridge: None,
             min_samples: 16,
             base: CvBase::Mis,
             min_depth: None,
@@ -435,14 +442,22 @@ impl PhasedEstimator {
 
     /// The estimator with its sampler-dependent defaults filled in: `cms`'s `min_depth`
     /// `None` becomes [`MIN_DEPTH_STRATIFIED`] with the Sobol sampler (stratified per pixel)
-    /// and 0 with independent numbers. Every consumer of a job (phase planner, renderer)
-    /// resolves through this, so they agree.
+    /// and 0 with independent numbers, its `ridge` `None` [`RIDGE_STRATIFIED`] and
+    /// [`RIDGE_INDEPENDENT`]. Every consumer of a job (phase planner, renderer, worker and
+    /// coordinator solves) resolves through this, so they agree.
     pub fn for_sampler(self, sampler: SamplerKind) -> Self {
+        let stratified = sampler == SamplerKind::Sobol;
         match self {
             Self::Cms(o) => Self::Cms(CmsOptions {
-                min_depth: Some(o.min_depth.unwrap_or(match sampler {
-                    SamplerKind::Sobol => MIN_DEPTH_STRATIFIED,
-                    SamplerKind::Independent => 0,
+                min_depth: Some(o.min_depth.unwrap_or(if stratified {
+                    MIN_DEPTH_STRATIFIED
+                } else {
+                    0
+                })),
+                ridge: Some(o.ridge.unwrap_or(if stratified {
+                    RIDGE_STRATIFIED
+                } else {
+                    RIDGE_INDEPENDENT
                 })),
                 ..o
             }),
@@ -461,7 +476,7 @@ impl PhasedEstimator {
     /// Checks the ranges; returns the offending field and why.
     pub fn validate(&self) -> Result<(), (&'static str, &'static str)> {
         let (ridge, grid) = match self {
-            Self::Cms(o) => (Some(o.ridge), o.grid_resolution),
+            Self::Cms(o) => (o.ridge, o.grid_resolution),
             Self::PerLightCv(o) => (None, o.grid_resolution),
             Self::OptimalMis(o) => (Some(o.ridge), None),
         };
@@ -501,11 +516,12 @@ impl PhasedEstimator {
         Ok(())
     }
 
-    /// Solve policy of the cell systems.
+    /// Solve policy of the cell systems (`cms`'s `ridge` `None` read as the Sobol sampler's
+    /// [`RIDGE_STRATIFIED`]: resolve a job's with [`Self::for_sampler`] first).
     pub fn solve_policy(&self) -> crate::solve::SolvePolicy {
         match self {
             Self::Cms(o) => crate::solve::SolvePolicy {
-                ridge: o.ridge,
+                ridge: o.ridge.unwrap_or(RIDGE_STRATIFIED),
                 min_samples: o.min_samples,
                 min_image_gain: o.min_image_gain.unwrap_or(f64::NEG_INFINITY),
                 min_fit_gain: o.min_fit_gain.unwrap_or(f64::NEG_INFINITY),
@@ -589,6 +605,24 @@ mod tests {
             ..CmsOptions::default()
         });
         assert_eq!(two.for_sampler(independent).min_depth(), 2);
+        // The ridge alike.
+        assert_eq!(
+            cms.for_sampler(sobol).solve_policy().ridge,
+            RIDGE_STRATIFIED
+        );
+        assert_eq!(cms.solve_policy().ridge, RIDGE_STRATIFIED);
+        assert_eq!(
+            cms.for_sampler(independent).solve_policy().ridge,
+            RIDGE_INDEPENDENT
+        );
+        let fixed = PhasedEstimator::Cms(CmsOptions {
+            ridge: Some(2.0),
+            ..CmsOptions::default()
+        });
+        assert_eq!(fixed.for_sampler(independent).solve_policy().ridge, 2.0);
+        // Resolving twice changes nothing.
+        let once = cms.for_sampler(independent);
+        assert_eq!(once.for_sampler(sobol), once);
         let om = PhasedEstimator::OptimalMis(Default::default());
         assert!(om.controls_any_vertex(2) && !om.controls_any_vertex(1));
     }
@@ -605,6 +639,11 @@ mod tests {
         let bad = PhasedEstimator::OptimalMis(OptimalMisOptions {
             ridge: f64::NAN,
             ..OptimalMisOptions::default()
+        });
+        assert_eq!(bad.validate().unwrap_err().0, "ridge");
+        let bad = PhasedEstimator::Cms(CmsOptions {
+            ridge: Some(-1.0),
+            ..CmsOptions::default()
         });
         assert_eq!(bad.validate().unwrap_err().0, "ridge");
         for g in [f64::NAN, f64::INFINITY] {

@@ -158,7 +158,7 @@ fn cms_balance_base_without_shrinkage_is_unbiased_on_colour_lamp() {
         training_spp: 8,
         grid_resolution: Some([4, 4, 4]),
         min_samples: 8,
-        ridge: 1e-6,
+        ridge: Some(1e-6),
         base: render::integrator::cv::CvBase::Balance,
         // The fits applied whatever their predicted gain: this tests their mechanics.
         min_image_gain: None,

@@ -310,7 +310,10 @@ pub fn render_local(prepared: &Prepared, job: &ResolvedJob) -> Result<AssembledI
             };
             results.push(prepared.render_task(header, phase.kind, &inputs)?);
         }
-        let phased = prepared.estimator.phased();
+        let phased = prepared
+            .estimator
+            .phased()
+            .map(|p| p.for_sampler(job.sampler));
         match (phase.kind, phased) {
             (PhaseKind::Surrogate, Some(_)) => {
                 let blob = cv::surrogate_blob(job, &results)?;
@@ -502,6 +505,30 @@ mod tests {
         // hit: the farm plans a training phase and its bits are still the driver's.
         let cms = EstimatorSpec::Cms(Default::default());
         local_equals_in_process_driver_with(cms, 9, 2, SamplerKind::Independent);
+        // With the fits always applied, the sampler-dependent `ridge` shows in the bits: the
+        // farm's solve resolves it as the driver's does, and not as the Sobol default.
+        use estimators::spec::CmsOptions;
+        let applied = CmsOptions {
+            min_image_gain: None,
+            min_fit_gain: None,
+            ..CmsOptions::default()
+        };
+        let by_sampler = local_equals_in_process_driver_with(
+            EstimatorSpec::Cms(applied),
+            9,
+            5,
+            SamplerKind::Independent,
+        );
+        let stratified_ridge = local_equals_in_process_driver_with(
+            EstimatorSpec::Cms(CmsOptions {
+                ridge: Some(estimators::spec::RIDGE_STRATIFIED),
+                ..applied
+            }),
+            9,
+            5,
+            SamplerKind::Independent,
+        );
+        assert!(by_sampler != stratified_ridge);
     }
 
     /// With the default `min_depth` 1 a depth-2 `cms` job controls nothing: one render phase
