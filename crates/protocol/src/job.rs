@@ -169,9 +169,17 @@ impl EstimatorSpec {
         )
     }
 
-    /// The phase-structured form (`cms`, `per_light_cv`, `optimal_mis`); `None` for the
-    /// estimators rendered in one pass.
-    pub fn phased(&self) -> Option<PhasedEstimator> {
+    /// The phase-structured form of a job sampling with `sampler` (`cms`, `per_light_cv`,
+    /// `optimal_mis`), its sampler-dependent defaults filled in
+    /// ([`PhasedEstimator::for_sampler`]); `None` for the estimators rendered in one pass.
+    /// The only way out of the spec, so the planner, the worker's and the coordinator's
+    /// solves and upload checks resolve a job's defaults alike.
+    pub fn phased_for(&self, sampler: SamplerKind) -> Option<PhasedEstimator> {
+        self.phased().map(|p| p.for_sampler(sampler))
+    }
+
+    /// The phase-structured form as written (sampler defaults unresolved: for range checks).
+    fn phased(&self) -> Option<PhasedEstimator> {
         match *self {
             Self::Cms(o) => Some(PhasedEstimator::Cms(o)),
             Self::PerLightCv(o) => Some(PhasedEstimator::PerLightCv(o)),
@@ -549,11 +557,10 @@ pub const SURROGATE_TILE: u32 = 128;
 
 fn phase_shapes(job: &ResolvedJob, est: &EstimatorSpec) -> Vec<(PhaseKind, u32, Range<u32>, u32)> {
     let spt = job.samples_per_task;
-    let Some(p) = est.phased() else {
+    let Some(p) = est.phased_for(job.sampler) else {
         return vec![(PhaseKind::Render, job.tile_size, 0..job.spp, spt)];
     };
     let max_depth = u32::try_from(job.max_depth).unwrap_or(u32::MAX); // −1: unbounded
-    let p = p.for_sampler(job.sampler);
     let ph = p.phases(job.spp, max_depth);
     let mut out = Vec::with_capacity(3);
     // The surrogate exists only for relative-variance training [Hua eq. 25] (as in

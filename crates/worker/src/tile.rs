@@ -310,10 +310,7 @@ pub fn render_local(prepared: &Prepared, job: &ResolvedJob) -> Result<AssembledI
             };
             results.push(prepared.render_task(header, phase.kind, &inputs)?);
         }
-        let phased = prepared
-            .estimator
-            .phased()
-            .map(|p| p.for_sampler(job.sampler));
+        let phased = prepared.estimator.phased_for(job.sampler);
         match (phase.kind, phased) {
             (PhaseKind::Surrogate, Some(_)) => {
                 let blob = cv::surrogate_blob(job, &results)?;
@@ -463,8 +460,8 @@ mod tests {
         )
         .unwrap();
         let controls = est
-            .phased()
-            .is_some_and(|p| p.for_sampler(sampler).controls_any_vertex(max_depth as u32));
+            .phased_for(sampler)
+            .is_some_and(|p| p.controls_any_vertex(max_depth as u32));
         assert_eq!(report.cells > 0, controls, "{report:?}");
         let layers = film.layers();
         let flat = |i: usize| -> Vec<u32> {

@@ -544,7 +544,10 @@ fn barrier_breakdown(coord: &Coordinator, id: i64, train: i64) {
         .collect();
     let job = coord.block_on(store.job(id)).expect("store").expect("job");
     let spec: protocol::JobSpec = serde_json::from_str(&job.spec).expect("spec");
-    let est = spec.estimator.phased().expect("a phased estimator");
+    let est = spec
+        .estimator
+        .phased_for(spec.sampler)
+        .expect("a phased estimator");
     let best = |f: &mut dyn FnMut()| {
         (0..3)
             .map(|_| {
