@@ -6,7 +6,8 @@
 //! CV_MEASURE="many-lights:5,veach-mis:5" CV_SPP=64 CV_SCALE=2 \
 //!   cargo test --release -p render --test cv_overhead -- --ignored --nocapture
 //! ```
-//! `CV_EST` (default `cms`), `CV_REPEAT` (default 3).
+//! `CV_EST` (default `cms`), `CV_REPEAT` (default 3), `CV_SAMPLER` (`sobol` or `independent`;
+//! default: the scene's).
 
 mod cv_support;
 
@@ -48,6 +49,18 @@ fn path_range(rs: &RenderScene, st: &RenderSettings, tiles: &[TileRect], r: Rang
 #[test]
 #[ignore = "measurement harness, prints only"]
 fn measure_phase_overhead() {
+    // One worker thread for the phases' bands. On the global pool (every core) two busy
+    // threads ran the CV phases while `path`'s loop here runs on one, and on this 2-vCPU VM
+    // two busy threads each run slower than one: the CPU seconds overstated the CV's
+    // overhead (colour-lamp d5, 128², 128 spp, independent: +20.1 % there, +11.6 % here).
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .expect("a one-thread pool")
+        .install(measure);
+}
+
+fn measure() {
     let scenes = env_or("CV_MEASURE", "many-lights:5,veach-mis:5");
     let spec = env_or("CV_EST", "cms");
     let spp: u32 = env_or("CV_SPP", "64").parse().unwrap();
@@ -73,6 +86,13 @@ fn measure_phase_overhead() {
             max_depth: depth,
             ..RenderSettings::from_scene(&s)
         };
+        let st = match std::env::var("CV_SAMPLER") {
+            Ok(k) => RenderSettings {
+                sampler: serde_json::from_value(k.into()).expect("CV_SAMPLER: sobol | independent"),
+                ..st
+            },
+            Err(_) => st,
+        };
         let rs = RenderScene::new(&s, &st).unwrap();
         let pst = RenderSettings {
             estimator: Estimator::Path,
@@ -83,10 +103,16 @@ fn measure_phase_overhead() {
         let tiles = TileRect::grid(rs.width, rs.height, 32);
         let train_tiles = TileRect::grid(rs.width, rs.height, TRAIN_TILE);
 
-        // `CV_ONLY=path|cms` runs one side only (for `perf stat` / `perf record`).
+        // `CV_ONLY=path|cms` runs one side only, `render` / `path-render` the render phase and
+        // `path` over its samples (for `perf record`).
         let only = env_or("CV_ONLY", "");
-        let run_path = only != "cms";
+        let run_path = only.is_empty() || only == "path";
         let run_cv = only != "path";
+        if only == "path-render" {
+            let t = best(repeat, || path_range(&rs, &pst, &tiles, ph.render.clone())).0;
+            println!("{name} d{depth} path over the render range {t:.3} s");
+            continue;
+        }
         let (mut t_path_all, mut t_path_train, mut t_path_render) = (f64::NAN, f64::NAN, f64::NAN);
         let (mut r_path_train, mut r_path_render) = (0, 0);
         if run_path {
@@ -102,25 +128,27 @@ fn measure_phase_overhead() {
             continue;
         }
 
-        let (t_sur, sfilm) = best(repeat, || {
+        // The render-phase profile repeats that phase only.
+        let pre = if only == "render" { 1 } else { repeat };
+        let (t_sur, sfilm) = best(pre, || {
             let mut f = Film::new(rs.width, rs.height);
             for &t in &tiles {
                 f.merge(&job.surrogate_tile(t, ph.surrogate.clone()).film);
             }
             f
         });
-        let (t_den, sur) = best(repeat, || {
+        let (t_den, sur) = best(pre, || {
             job.needs_surrogate().then(|| {
                 surrogate_image(&film_moments(&sfilm), rs.width as usize, rs.height as usize)
             })
         });
-        let (t_train, outs) = best(repeat, || {
+        let (t_train, outs) = best(pre, || {
             train_tiles
                 .iter()
                 .map(|&t| job.train_tile(t, ph.train.clone(), sur.as_deref()).unwrap())
                 .collect::<Vec<_>>()
         });
-        let (t_solve, table) = best(repeat, || {
+        let (t_solve, table) = best(pre, || {
             let mut merged = None;
             for o in &outs {
                 match &mut merged {
@@ -131,6 +159,17 @@ fn measure_phase_overhead() {
             let solved = merged.unwrap().solve(&job.solve_policy(), 1);
             job.coefficient_table(&solved.coefficients).unwrap()
         });
+        if only == "render" {
+            // The render phase alone (for `perf record`), after the same training.
+            let (t, _) = best(repeat, || {
+                tiles
+                    .iter()
+                    .map(|&t| job.render_tile(t, ph.render.clone(), &table).out.rays)
+                    .sum::<u64>()
+            });
+            println!("{name} d{depth} render phase {t:.3} s");
+            continue;
+        }
         let (t_render, r_render) = best(repeat, || {
             tiles
                 .iter()
