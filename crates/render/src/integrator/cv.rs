@@ -829,8 +829,9 @@ fn v3(v: Vec3) -> [f64; 3] {
 impl Policy<'_, '_> {
     /// The NEE and BSDF samples of a vertex; `None` when NEE did not run (delta BSDF or no
     /// lights: the vertex is not controlled).
+    /// `values`: whether the samples' values are wanted (else they are left zero).
     #[inline]
-    fn samples(&self, r: &VertexRecord) -> Option<[Option<TechSample>; 2]> {
+    fn samples(&self, r: &VertexRecord, values: bool) -> Option<[Option<TechSample>; 2]> {
         let nee_light = r.nee_light?;
         let comps = &self.ctx.comps;
         let nee_only = self.ctx.kind == Kind::PerLight;
@@ -846,10 +847,14 @@ impl Policy<'_, '_> {
                 let p = pl + pb;
                 // Base value: the job's MIS weight against the BSDF density of the
                 // direction, exactly as `path` weighs it (zero when occluded anyway).
-                let w = f64::from(self.ctx.base.weight(lt.pdf_light, lt.pdf_bsdf)) / pl;
-                let f = v3(lt.value);
+                let value = if values {
+                    let w = f64::from(self.ctx.base.weight(lt.pdf_light, lt.pdf_bsdf)) / pl;
+                    v3(lt.value).map(|x| x * w)
+                } else {
+                    [0.0; 3]
+                };
                 Some(TechSample {
-                    value: f.map(|x| x * w),
+                    value,
                     pdf: if nee_only { pl } else { p },
                     partition: Some((c, pl * inv_s)),
                     lambda_bsdf: pb,
@@ -882,7 +887,11 @@ impl Policy<'_, '_> {
                 };
                 if b.delta {
                     Some(TechSample {
-                        value: v3(b.weight * b.emitted),
+                        value: if values {
+                            v3(b.weight * b.emitted)
+                        } else {
+                            [0.0; 3]
+                        },
                         pdf: 1.0,
                         partition: None,
                         lambda_bsdf: 1.0,
@@ -892,14 +901,18 @@ impl Policy<'_, '_> {
                     let pb = f64::from(b.pdf_bsdf);
                     let pl = f64::from(b.pdf_light);
                     let p = pb + pl;
-                    let fw = v3(b.weight * b.emitted);
                     let partition = match b.hit_light {
                         Some(l) if pl > 0.0 => comps.of(l).map(|(c, inv_s)| (c, pl * inv_s)),
                         _ => None,
                     };
-                    let w = f64::from(self.ctx.base.weight(b.pdf_bsdf, b.pdf_light));
+                    let value = if values {
+                        let w = f64::from(self.ctx.base.weight(b.pdf_bsdf, b.pdf_light));
+                        v3(b.weight * b.emitted).map(|x| x * w)
+                    } else {
+                        [0.0; 3]
+                    };
                     Some(TechSample {
-                        value: fw.map(|x| x * w),
+                        value,
                         pdf: p,
                         partition,
                         lambda_bsdf: pb,
@@ -925,11 +938,14 @@ impl Policy<'_, '_> {
 impl VertexObserver for Policy<'_, '_> {
     const CONTROLS_DIRECT: bool = true;
 
-    /// A vertex is left to `path` (no policy work, none of the extra rays a CV needs) when
-    /// the policy would return its base estimate unchanged and unrecorded: shallower than
-    /// `min_depth`, or in the render phase in a cell without coefficients (`α ≡ 0`, where
-    /// the controlled estimate [Hua eq. 17] is the base one). That needs the base to be the
-    /// job's heuristic; otherwise every vertex goes through the policy.
+    /// A vertex is left to `path` (no policy work, none of the extra rays a CV needs) unless
+    /// the policy records it (training, in a cell) or controls it (render phase, in a cell
+    /// with coefficients): shallower than `min_depth`, outside the training phase's cells, or
+    /// in a cell without coefficients (`α ≡ 0`), the estimate is `path`'s, whatever the
+    /// base. With `base: "balance"` that makes a cell whose fits fell back, and a job whose
+    /// fits were all switched off, exactly `path` (the balance base alone is worse than the
+    /// job's heuristic); the estimate stays unbiased, the choice depending only on the
+    /// vertex's cell.
     #[inline]
     fn controls(&mut self, depth: u32, p: Vec3, ns: Vec3) -> bool {
         let min_depth = self.ctx.min_depth;
@@ -941,11 +957,8 @@ impl VertexObserver for Policy<'_, '_> {
         if depth == 0 {
             self.first_cell = cell;
         }
-        // Shallower than `min_depth`: not controlled, the base estimate, no training sample.
+        // Shallower than `min_depth`: not controlled, `path`'s estimate, no training sample.
         self.cell = cell.filter(|_| depth >= min_depth);
-        if self.ctx.base != self.ctx.st.mis {
-            return true;
-        }
         match (&self.phase, self.cell) {
             (_, None) | (Phase::Plain, _) => false,
             (Phase::Train(_), Some(_)) => true,
@@ -953,24 +966,45 @@ impl VertexObserver for Policy<'_, '_> {
         }
     }
 
+    /// While training, and in the render phase with the job's heuristic as the base,
+    /// [`path::trace`](super::path::trace) adds the vertex's MIS-weighted direct lighting
+    /// itself: a training sample is bit for bit `path`'s (the records carry the base's
+    /// values for the fits), and a controlled vertex adds only the CV term
+    /// `Σ_k α_k − Σ_s R_s Σ_k α_k λ_k(x_s)/p(x_s)` [Hua eq. 17]. With `base: "balance"` the
+    /// render phase's controlled vertices return the whole estimate (balance values plus the
+    /// term).
+    #[inline]
+    fn adds_to_path(&self) -> bool {
+        matches!(self.phase, Phase::Train(_)) || self.ctx.base == self.ctx.st.mis
+    }
+
     #[inline]
     fn controlled_vertex(&mut self, r: &VertexRecord) -> Vec3 {
-        let Some(samples) = self.samples(r) else {
+        let adds_to_path = self.adds_to_path();
+        // Set by `controls` for this vertex.
+        let cell = self.cell;
+        let training = matches!((&self.phase, cell), (Phase::Train(_), Some(_)));
+        // Sample values are read by the records, and by the estimate when it is not `path`'s
+        // plus a term.
+        let Some(samples) = self.samples(r, training || !adds_to_path) else {
             // Only the BSDF technique ran: its full (w = 1) contribution.
             return match r.bsdf {
-                Some(b) if b.traced => r.throughput * b.weight / b.rr_q * b.emitted,
+                Some(b) if b.traced && !adds_to_path => {
+                    r.throughput * b.weight / b.rr_q * b.emitted
+                }
                 _ => Vec3::ZERO,
             };
         };
+        let kind = self.ctx.kind;
+        // The base estimate `Σ_s R_s F_s`, unless `trace` adds it.
         let mut plain = [0.0f64; 3];
-        for s in samples.iter().flatten() {
-            for (p, v) in plain.iter_mut().zip(s.value) {
-                *p += s.scale * v;
+        if !adds_to_path {
+            for s in samples.iter().flatten() {
+                for (p, v) in plain.iter_mut().zip(s.value) {
+                    *p += s.scale * v;
+                }
             }
         }
-        // Set by `controls` for this vertex.
-        let cell = self.cell;
-        let kind = self.ctx.kind;
         let mut out = plain;
         match (&mut self.phase, cell) {
             (Phase::Train(cells), Some(key)) => {
@@ -1022,18 +1056,20 @@ impl VertexObserver for Policy<'_, '_> {
             }
             (Phase::Apply(table), Some(key)) => {
                 if let Some(slot) = table.get(key) {
-                    out = table.alpha_sum(slot);
+                    let alpha = table.alpha_sum(slot);
+                    for c in 0..3 {
+                        out[c] += alpha[c];
+                    }
                     // `per_light_cv` controls the NEE sample only [Hua §7.2].
                     let per_light = kind == Kind::PerLight;
                     for (i, s) in samples.iter().enumerate() {
                         let Some(s) = s else { continue };
-                        let t = if per_light && i == 1 {
-                            [0.0; 3]
-                        } else {
-                            table.term(slot, s, !per_light)
-                        };
+                        if per_light && i == 1 {
+                            continue;
+                        }
+                        let t = table.term(slot, s, !per_light);
                         for c in 0..3 {
-                            out[c] += s.scale * (s.value[c] - t[c]);
+                            out[c] -= s.scale * t[c];
                         }
                     }
                     let d = Vec3::new(
@@ -1042,6 +1078,9 @@ impl VertexObserver for Policy<'_, '_> {
                         (out[2] - plain[2]) as f32,
                     );
                     self.cv_delta += r.throughput * d;
+                    if adds_to_path {
+                        return r.throughput * d;
+                    }
                 }
             }
             _ => {}
@@ -1755,18 +1794,15 @@ impl Banded {
 
 /// Whether a tile of phase `kind` (with `table` in the render phase) traces `path`'s own pixel
 /// samples: where the vertex policy would change nothing — no sample is controlled or trained
-/// on, and the base estimator is the job's `path` — the same estimator without the policy's
+/// on (uncontrolled vertices are `path`'s whatever the base) — the same estimator without the policy's
 /// per-vertex work and the extra rays a CV needs [Hua §8] (the `cell` layer then stays −1).
 /// Farm workers run the same code: same bits.
 fn traces_as_path(ctx: &CvContext<'_>, kind: PhaseKind, table: Option<&CoefficientTable>) -> bool {
-    ctx.base == ctx.st.mis
-        && match kind {
-            PhaseKind::Plain => true,
-            PhaseKind::Train => !ctx.controls_any_vertex(),
-            PhaseKind::Apply => {
-                !ctx.controls_any_vertex() || table.is_none_or(|t| t.coeffs.is_empty())
-            }
-        }
+    match kind {
+        PhaseKind::Plain => true,
+        PhaseKind::Train => !ctx.controls_any_vertex(),
+        PhaseKind::Apply => !ctx.controls_any_vertex() || table.is_none_or(|t| t.coeffs.is_empty()),
+    }
 }
 
 /// Training tables merged in the given (canonical) order: the first is the start, each
@@ -2079,13 +2115,11 @@ pub fn render_estimator_image(
     let start = Instant::now();
     let rs = scene;
     let job = CvJob::new(rs, settings)?;
-    // A CV job that controls no vertex (e.g. `cms` at depth 2 with `min_depth` 1) whose base
-    // is the job's heuristic *is* `path`: one render phase with `path`'s bits, as on the farm
+    // A CV job that controls no vertex (e.g. `cms` at depth 2 with `min_depth` 1) *is*
+    // `path`, whatever its base: one render phase with `path`'s bits, as on the farm
     // ([`PhasedEstimator::phases`]). `path`'s own driver renders it, without the CV driver's
     // banded tiles and per-tile layers (≈ 4 % of CPU time on colour-lamp at depth 2).
-    let plain = job
-        .as_ref()
-        .is_some_and(|j| !j.controls_any_vertex() && j.ctx.base == settings.mis);
+    let plain = job.as_ref().is_some_and(|j| !j.controls_any_vertex());
     let job = match job {
         Some(j) if !plain => j,
         _ => {

@@ -436,7 +436,8 @@ pub struct VertexRecord {
 pub trait VertexObserver {
     /// When `true` the observer *owns* the direct lighting of scattering vertices:
     /// [`path::trace`] adds neither the NEE contribution nor the emission found by the BSDF
-    /// sample, but the value [`controlled_vertex`](Self::controlled_vertex) returns; it also
+    /// sample (unless [`adds_to_path`](Self::adds_to_path)), but the value
+    /// [`controlled_vertex`](Self::controlled_vertex) returns; it also
     /// traces zero-weight BSDF samples (then stops) and shadow rays of zero-valued NEE
     /// samples with `pdf_bsdf > 0`, so every technique's pdf is known for every sample
     /// [Hua §8]. With `false` (the default) `trace` is exactly the `path` estimator.
@@ -458,9 +459,22 @@ pub trait VertexObserver {
     #[inline]
     fn vertex(&mut self, _record: &VertexRecord) {}
 
+    /// Asked once per path when [`CONTROLS_DIRECT`](Self::CONTROLS_DIRECT) is set: whether
+    /// the observer's estimate of a controlled vertex is `path`'s MIS-weighted direct
+    /// lighting plus a term of its own. Then [`path::trace`] adds the MIS-weighted direct
+    /// lighting of controlled vertices itself, exactly as of the others, and
+    /// [`controlled_vertex`](Self::controlled_vertex) returns only the added term.
+    ///
+    /// [`path::trace`]: path::trace
+    #[inline]
+    fn adds_to_path(&self) -> bool {
+        false
+    }
+
     /// Called instead of [`vertex`](Self::vertex) when
     /// [`CONTROLS_DIRECT`](Self::CONTROLS_DIRECT) is set: returns the vertex's
-    /// direct-lighting contribution *including* the prefix throughput `record.throughput`.
+    /// direct-lighting contribution *including* the prefix throughput `record.throughput`
+    /// (with [`adds_to_path`](Self::adds_to_path), only what it adds to `path`'s).
     #[inline]
     fn controlled_vertex(&mut self, record: &VertexRecord) -> Vec3 {
         self.vertex(record);

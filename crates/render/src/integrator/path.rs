@@ -30,8 +30,10 @@
 //! asked per vertex; steps 1–2 for emission found by the BSDF sample and NEE); `trace` then
 //! also traces zero-weight BSDF samples (and stops) and
 //! the shadow rays of zero-valued NEE samples with `p_bsdf > 0`, so every technique's pdf
-//! is known for every sample [Hua §8]. With the default observer nothing changes: `path`
-//! results are bit-identical.
+//! is known for every sample [Hua §8]. An observer whose base estimate is `path`'s own
+//! (`VertexObserver::adds_to_path`) leaves steps 1–2 to `trace` on controlled vertices too
+//! and returns only what it adds (a CV term); the others return the whole direct lighting.
+//! With the default observer nothing changes: `path` results are bit-identical.
 //!
 //! Sampler dimensions (aligned to the sampler's 4-dimension sets): 0–1 pixel position (2–3
 //! unused); vertex `k` uses the 8 dimensions from `4 + 8k`: light selection (1), light
@@ -144,6 +146,7 @@ pub fn trace<O: VertexObserver>(
 
     let mut beta = Vec3::ONE;
     let mut depth = 0u32;
+    let adds_to_path = O::CONTROLS_DIRECT && observer.adds_to_path();
     loop {
         let bsdf = rs.materials.bsdf(h.material, h.uv);
         if depth == 0 {
@@ -156,6 +159,8 @@ pub fn trace<O: VertexObserver>(
         // Whether the observer owns this vertex's direct lighting (needs every technique's
         // pdf, [Hua §8]); an uncontrolled vertex is exactly `path`'s.
         let controls = O::CONTROLS_DIRECT && observer.controls(depth, h.p, h.ns);
+        // Whether this vertex's MIS-weighted direct lighting is added here (`path`'s).
+        let adds_direct = !controls || adds_to_path;
         let frame = Frame::from_normal(h.ns);
         let wo = frame.to_local(-ray.d);
 
@@ -208,7 +213,7 @@ pub fn trace<O: VertexObserver>(
                     }
                 }
             }
-            if !controls && value != Vec3::ZERO {
+            if adds_direct && value != Vec3::ZERO {
                 let w = if ls.delta {
                     1.0
                 } else {
@@ -305,7 +310,7 @@ pub fn trace<O: VertexObserver>(
                 }
             }
         }
-        if !controls && tech.emitted != Vec3::ZERO {
+        if adds_direct && tech.emitted != Vec3::ZERO {
             let w = if bs.delta {
                 1.0
             } else {
