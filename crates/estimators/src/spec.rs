@@ -50,17 +50,22 @@ impl CvColor {
     }
 }
 
-/// The base estimator of the controlled direct lighting, i.e. what a CV estimator computes
-/// with `α ≡ 0` (the correction `Σα − Σ_s Σ_k α_k λ_k(x_s)/p(x_s)` has zero mean for any
-/// base, see `render::integrator::cv`).
+/// The base estimator of the controlled direct lighting: the values `F_s` the fits are
+/// trained on and the render phase corrects in cells with coefficients (the correction
+/// `Σα − Σ_s Σ_k α_k λ_k(x_s)/p(x_s)` has zero mean for any base, see
+/// `render::integrator::cv`). Vertices in cells without coefficients, and the training
+/// samples' image contributions, are `path`'s (the job's heuristic) whatever the base.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum CvBase {
-    /// The job's MIS heuristic (`mis`, power by default): `α ≡ 0` is exactly `path`.
-    #[default]
+    /// The job's MIS heuristic (`mis`, power by default): the render phase adds only the CV
+    /// term to `path`'s estimate.
     Mis,
-    /// The balance heuristic, whatever the job's `mis` [Hua eq. 6]: with the optimal `α`
-    /// the CV can cancel the integrand exactly [Hua eq. 19].
+    /// The balance heuristic, whatever the job's `mis` [Hua eq. 6], the paper's
+    /// `F_s = f/p`: with the optimal `α` the CV can cancel the integrand exactly
+    /// [Hua eq. 19]. `cms`'s default: at equal spp it gains more than the power base on
+    /// every scene whose fits are kept (`docs/bench/README.md`, "Latest (2026-12-06)").
+    #[default]
     Balance,
 }
 
@@ -224,7 +229,7 @@ pub const RIDGE_INDEPENDENT: f64 = 0.1;
 /// | `max_light_components` | u32 | 1024 | more emitters than this are clustered by spatial proximity |
 /// | `ridge` | f64 \| null | null | relative Tikhonov regularisation of each cell system: `A + ridge·diag(A)` shrinks `α` toward the base estimator (`path` with the default `base`); 0.5 scales an uncorrelated coefficient by 2/3. null = by the job's sampler ([`PhasedEstimator::for_sampler`]): **0.5 with the Sobol sampler** ([`RIDGE_STRATIFIED`]: the fits minimise the variance of independent samples, which overstates the per-pixel stratified `path`'s, so they are shrunk toward it; 1 shrank colour-lamp's fits too far, 1.42× → 1.53× at 0.5, and below 0.5 many-lights' sparsely sampled lights lose), **0.1 with the independent one** ([`RIDGE_INDEPENDENT`]: there the fits' objective is the estimator's variance, and less shrinking gains 3–10 % at equal spp on colour-lamp, `manylights-4` and veach-mis d2). Chosen by equal-spp measurements (`docs/bench/README.md`) |
 /// | `min_samples` | u64 | 16 | cells with fewer training samples fall back to the plain estimator |
-/// | `base` | `"mis"` \| `"balance"` | `"mis"` | base estimator (`α ≡ 0`): the job's MIS heuristic (= `path`) or balance [`CvBase`] |
+/// | `base` | `"mis"` \| `"balance"` | `"balance"` | values the fits are trained on and the render phase corrects in cells with coefficients: the job's MIS heuristic (= `path`) or balance, the paper's `f/p` ([`CvBase`]); elsewhere, and in the training samples' image, `path`'s either way. Balance by equal-spp measurements, both samplers (`docs/bench/README.md`) |
 /// | `min_image_gain` | f64 \| null | `3e-4` | the fits are applied only when they are predicted to remove at least this fraction of the image's per-sample (relative) variance, measured on the training samples ([`crate::table::predicted_image_gain`]); below it every cell falls back and the render phase is traced as `path`; a training tile whose own first 2 spp predict less than half of it stops recording (`render::integrator::cv::TRAIN_PROBE_SPP`). null always applies them. Chosen by equal-spp and equal-time measurements (`docs/bench/README.md`) |
 /// | `min_fit_gain` | f64 \| null | `0.2` | the fits are applied only when they remove at least this fraction of the variance at the vertices they control (within each technique: the estimator takes one NEE and one BSDF sample, so the spread between the two techniques is no variance of it), over all cells, measured on the training samples ([`crate::table::predicted_fit_gain`]); below it every cell falls back and the render phase is traced as `path`. It bounds the equal-spp gain at `1/(1 − g)` whatever the image's noise is made of, so a small one cannot pay for the CV's per-sample cost; a training tile whose own first 2 spp predict less than half of it stops recording. null always applies them. Chosen by equal-spp and equal-time measurements (`docs/bench/README.md`) |
 /// | `min_depth` | u32 \| null | null | the CV is trained and applied only at path vertices of at least this depth (0 = the camera hit); shallower vertices use the base estimator. null = by the job's sampler ([`PhasedEstimator::for_sampler`]): **1 with the Sobol sampler** (depth-2, direct-lighting jobs are then exactly `path`: the CV at the camera hit costs more than it gains against the per-pixel stratified Sobol samples), **0 with the independent one** (there the camera hit's direct lighting is where colour noise is: colour-lamp d2 3.58× at equal time). Chosen by equal-spp and equal-time measurements (`docs/bench/README.md`) |
@@ -270,7 +275,7 @@ impl Default for CmsOptions {
             max_light_components: 1024,
             ridge: None,
             min_samples: 16,
-            base: CvBase::Mis,
+            base: CvBase::Balance,
             min_depth: None,
             min_image_gain: Some(DEFAULT_MIN_IMAGE_GAIN),
             min_fit_gain: Some(DEFAULT_MIN_FIT_GAIN),

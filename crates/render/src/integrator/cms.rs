@@ -18,12 +18,13 @@
 //!
 //! Options (defaults, ranges, meaning): the table of [`CmsOptions`] (defined once, in
 //! `estimators::spec`, for the CLI, the farm's API and the renderer). With the default
-//! `base: "mis"` each sample's `F_s` is the job's MIS-weighted value (power heuristic, as
-//! `path`), so a cell with `α ≡ 0` renders exactly like `path`; `base: "balance"` is the
-//! paper's `F_s = f/p`. The CV term has zero mean for either base.
+//! `base: "balance"` each sample's `F_s` is the paper's `f/p`; with `base: "mis"` it is the
+//! job's MIS-weighted value (power heuristic, as `path`). The CV term has zero mean for
+//! either base, and for either a cell without coefficients (`α ≡ 0`) renders exactly like
+//! `path`, as do the training samples.
 //!
 //! ```json
-//! { "kind": "cms", "relative": true, "color": "rgb", "training_spp": 16, "grid_resolution": [32, 32, 32], "ridge": 1.0, "base": "mis" }
+//! { "kind": "cms", "relative": true, "color": "rgb", "training_spp": 16, "grid_resolution": [32, 32, 32], "ridge": 1.0, "base": "balance" }
 //! ```
 
 pub use estimators::spec::CmsOptions;
