@@ -27,22 +27,24 @@
 //! BSDF sample whose path roulette ended is dropped, `R = 0`, which keeps the estimator
 //! unbiased).
 //!
-//! # Base estimator (`α ≡ 0`)
-//! The sample value is `F_s = w_s(x_s) f(x_s)/p_s(x_s)`, MIS-weighted with the **job's
-//! heuristic** (`mis`, power by default; option `base: "balance"` forces the balance
-//! heuristic, `F_s = f/p` [Hua eq. 6]). The CV correction `Σ_k α_k (1 − Σ_s R_s λ_k(x_s)/
-//! p(x_s))` has zero mean for any fixed `α` whatever the base weights, because the samples
-//! are one per technique and `p` is their sum: `E[Σ_s λ_k(x_s)/p(x_s)] = ∫ λ_k Σ_s p_s/p =
-//! 1`. So the estimator stays unbiased, and with `α ≡ 0` (fallback cells) it *is* the
-//! `path` estimator with the same heuristic.
+//! # Base estimator
+//! The sample value the fits are trained on and a controlled vertex corrects is
+//! `F_s = w_s(x_s) f(x_s)/p_s(x_s)`: with `cms`'s default `base: "balance"` the balance
+//! heuristic, `F_s = f/p` [Hua eq. 6]; with `base: "mis"` the **job's heuristic** (`mis`,
+//! power by default). The CV correction `Σ_k α_k (1 − Σ_s R_s λ_k(x_s)/p(x_s))` has zero
+//! mean for any fixed `α` whatever the base weights, because the samples are one per
+//! technique and `p` is their sum: `E[Σ_s λ_k(x_s)/p(x_s)] = ∫ λ_k Σ_s p_s/p = 1`. So the
+//! estimator stays unbiased. A vertex that is not controlled (a cell without coefficients,
+//! shallower than `min_depth`, a training sample's image contribution) is `path`'s, with the
+//! job's heuristic, whatever the base ([`VertexObserver::controls`],
+//! [`VertexObserver::adds_to_path`]); choosing by the vertex's cell keeps it unbiased.
 //!
 //! Training regresses each sample's `F_s` on its `λ_k(x_s)/p(x_s)` (one observation per
 //! sample, [Hua eq. 21, 23]). With MIS weights `w_s` summing to one, the per-point sum
 //! `Σ_s p_s (F_s − h)² = p (h − f/p)² + const(x)` for any `h = Σ α_k λ_k/p`, so the normal
 //! equations have the same expectation for the power and the balance base: the fitted `α`
 //! targets `α·λ ≈ f` either way. With the balance base a perfect fit cancels the integrand
-//! [Hua eq. 19]; with the power base it leaves the (small) residual `f (w_s/p_s − 1/p)`
-//! but the fallback is the stronger estimator. The regression minimises the variance of a
+//! [Hua eq. 19]; with the power base it leaves the (small) residual `f (w_s/p_s − 1/p)`. The regression minimises the variance of a
 //! *random* mixture; the deterministic one-sample-per-technique estimator differs by the
 //! spread of the techniques' expected contributions, which the fit also penalises (see
 //! `docs/bench/README.md`; the ridge shrinks `α` toward the base where the fit is weak).
@@ -51,8 +53,9 @@
 //! ([`NORMAL_BINS`]), so differently oriented surfaces never share coefficients.
 //!
 //! # Controlled vertices (`min_depth`)
-//! `cms` trains and applies the CV only at vertices of depth ≥ `min_depth` (default 1: not
-//! at the camera hit); shallower vertices keep the base estimate. The regression measures
+//! `cms` trains and applies the CV only at vertices of depth ≥ `min_depth` (default by the
+//! sampler: 1 with Sobol, not at the camera hit; 0 with independent numbers); shallower
+//! vertices are `path`'s. The regression measures
 //! i.i.d. variance, but `path` samples each pixel with an Owen-scrambled Sobol sequence,
 //! whose error at the camera hit (the dimensions stratified per pixel) falls faster than
 //! `1/N`; the CV term `α·(1 − Σ_s λ/p)` jumps with visibility and light hits and spoils that
@@ -62,9 +65,9 @@
 //! where the variance the fit sees is the error the image gets.
 //!
 //! Where the policy would change nothing (the surrogate phase; jobs whose `max_depth`
-//! leaves no vertex at `min_depth` or deeper; a render phase without coefficients) and the
-//! base is the job's heuristic, tiles are traced with `path` itself: no policy work per
-//! vertex and none of the extra rays a CV needs.
+//! leaves no vertex at `min_depth` or deeper; a render phase without coefficients), tiles
+//! are traced with `path` itself, whatever the base: no policy work per vertex and none of
+//! the extra rays a CV needs.
 //!
 //! # Phases and determinism
 //! surrogate (cms with `relative`) → train → solve → render, sample indices
@@ -416,7 +419,8 @@ struct CvContext<'a> {
     grid: Grid,
     layout: ComponentLayout,
     color: ColorMode,
-    /// MIS heuristic of the base estimator (`α ≡ 0`).
+    /// MIS heuristic of the base values `F_s` (trained on, and corrected at controlled
+    /// vertices); uncontrolled vertices use the job's.
     base: super::MisHeuristic,
     /// Vertices shallower than this are not controlled (`cms`'s `min_depth`).
     min_depth: u32,
