@@ -13,6 +13,7 @@
 //! | `min_samples` | u64 | 16 | [`SolvePolicy::min_samples`] |
 //! | `min_effective_samples` | f64 | 4 | [`SolvePolicy::min_effective_samples`] |
 //! | `min_partition_samples` | u64 | 1 | [`SolvePolicy::min_partition_samples`] |
+//! | `min_group_samples` | u64 | 1 (`cms`: [`crate::spec::CMS_GROUP_SAMPLES`]) | [`SolvePolicy::min_group_samples`] |
 //! | `max_condition` | f64 | `1e12` | [`SolvePolicy::max_condition`] |
 //!
 //! ```json
@@ -34,7 +35,8 @@
 //! | empty cell | no accepted sample → fallback | |
 //! | too few samples | `samples < min_samples` → fallback | 16 |
 //! | too few effective samples | Kish `(Σw)²/Σw² < min_effective_samples` → fallback | 4 |
-//! | inactive components | a partition with `< min_partition_samples` samples or zero diagonal, or an overlapping component with zero diagonal, gets `α = 0` and is removed from the system (never poisons it) | 1 |
+//! | thinly sampled partitions | partitions are solved in groups along the tree of partition index ranges, a range split only while each half with samples has `≥ min_group_samples` of them; a group is the mixture of its members' pdfs, weighted by their sample counts, and its `α` the members' `α_k = (n_k/n_G) α_G` ([`partition_groups`]) | 1 |
+//! | inactive components | a partition (group) with `< min_partition_samples` samples or zero diagonal, or an overlapping component with zero diagonal, gets `α = 0` and is removed from the system (never poisons it) | 1 |
 //! | regularisation | Tikhonov on the Jacobi-scaled system: `A + ridge · diag(A)`; shrinks `α` toward the plain estimator and bounds the scaled condition number by about `(k + ridge)/ridge` | `1e-6` |
 //! | ill-conditioned | condition estimate `(max Lᵢᵢ / min Lᵢᵢ)²` of the scaled Cholesky factor above `max_condition` → fallback | `1e12` |
 //! | failure | Cholesky fails or any `α` is NaN/Inf → fallback | |
@@ -55,7 +57,8 @@
 use nalgebra::{DMatrix, DVector};
 
 use crate::cell::{
-    CHANNELS, CellAccumulator, CellError, ColorMode, ComponentLayout, CvSample, Reader,
+    CHANNELS, CellAccumulator, CellError, ColorMode, ComponentLayout, CvSample, PartitionMoments,
+    Reader,
 };
 
 /// How a cell system is regularised and when it falls back (see the module table).
@@ -67,8 +70,15 @@ pub struct SolvePolicy {
     pub min_samples: u64,
     /// Minimum Kish effective sample count `(Σw)²/Σw²`.
     pub min_effective_samples: f64,
-    /// Minimum samples for a partition to get a fitted coefficient (else `α_k = 0`).
+    /// Minimum samples for a partition (or a group of them) to get a fitted coefficient
+    /// (else `α_k = 0`).
     pub min_partition_samples: u64,
+    /// Partitions are solved in groups of at least this many samples where the cell has
+    /// fewer per partition ([`partition_groups`]); 1 solves every sampled partition alone.
+    pub min_group_samples: u64,
+    /// Whether a table's keys are cells or the halves of cells ([`CellHalves`]). Used by
+    /// [`crate::table::AccumulatorTable::solve`]; [`solve`] itself ignores it.
+    pub halves: CellHalves,
     /// Largest accepted condition estimate of the scaled, regularised system.
     pub max_condition: f64,
     /// Smallest predicted image gain of a table's fits ([`crate::table::predicted_image_gain`])
@@ -91,11 +101,28 @@ impl Default for SolvePolicy {
             min_samples: 16,
             min_effective_samples: 4.0,
             min_partition_samples: 1,
+            min_group_samples: 1,
+            halves: CellHalves::None,
             max_condition: 1e12,
             min_image_gain: f64::NEG_INFINITY,
             min_fit_gain: f64::NEG_INFINITY,
         }
     }
+}
+
+/// What the keys of an accumulator table are ([`SolvePolicy::halves`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum CellHalves {
+    /// Every key is a cell.
+    #[default]
+    None,
+    /// Keys `2c` and `2c + 1` are the two halves of cell `c` (its training samples of even
+    /// and odd sample index); each cell is solved on both halves merged.
+    Merged,
+    /// As [`Self::Merged`], and a cell keeps its coefficients only where they remove
+    /// variance out of sample: the fit of each half, applied to the other half's samples
+    /// ([`variance_reduction`]), must remove some in sum ([`FallbackReason::HeldOutLoss`]).
+    CrossFitted,
 }
 
 /// Why a cell fell back to the plain estimator (`α ≡ 0`).
@@ -126,6 +153,10 @@ pub enum FallbackReason {
     /// weighted variance of the estimates they control (`per_light_cv`, whose coefficients
     /// are not fitted: [`crate::perlight::MeanContributionAccumulator::prediction`]).
     NoReduction,
+    /// Cross-fitted on the cell's two halves ([`CellHalves::CrossFitted`]), the fits add
+    /// variance to the samples they were not fitted on: they follow the training samples'
+    /// noise (e.g. many lights with a few samples each).
+    HeldOutLoss,
 }
 
 /// Outcome of a cell solve.
@@ -144,7 +175,8 @@ pub struct SolveDiagnostics {
     pub status: SolveStatus,
     /// Condition estimate of the scaled, regularised system (`NaN` if not factorised).
     pub condition: f64,
-    /// Partitions that entered the system.
+    /// Partition groups that entered the system (partitions when each is its own group:
+    /// [`SolvePolicy::min_group_samples`]).
     pub active_partitions: usize,
     /// Overlapping components that entered the system.
     pub active_overlapping: usize,
@@ -526,6 +558,144 @@ fn centred(sum: f64, sum_sq: f64, weight_sum: f64) -> f64 {
     (sum_sq - sum * sum / weight_sum).max(0.0)
 }
 
+/// Sampled partitions solved as one component: a run `range` of a cell's partitions (in
+/// [`CellAccumulator::partitions`] order) and its merged moments.
+///
+/// A group `G` is the component of the mixture `λ_G = Σ_{k∈G} t_k λ_k`, `t_k = n_k / n_G`
+/// (`n` the samples with `λ ≠ 0`): a convex combination of the members' normalised pdfs,
+/// so it integrates to one and is a valid CV [Hua eq. 17]. The partitions' pdfs never
+/// overlap [Hua eq. 30], so a sample of member `k` has `λ_G/p = t_k λ_k/p` and the group's
+/// sums follow from the members' exactly: `A_GG = Σ t_k² A_kk`, `A_{G,j} = Σ t_k A_{k,j}`,
+/// `b_G = Σ t_k b_k`. Its coefficient `α_G` is the members' `α_k = t_k α_G` (the terms,
+/// and `Σ_k α_k = α_G`, are the same), so the render phase needs nothing but the
+/// members' coefficients. `t` is computed from the training samples: any fixed `t` keeps the
+/// estimator unbiased, as any fixed `α` does.
+struct Group {
+    range: std::ops::Range<usize>,
+    count: u64,
+    diag: f64,
+    /// `A_{G,j}` for the `K` overlapping components.
+    cross: Vec<f64>,
+    /// `b_G` per channel of the colour mode.
+    b: Vec<f64>,
+}
+
+impl Group {
+    fn of(parts: &[PartitionMoments<'_>], range: std::ops::Range<usize>, c: usize) -> Self {
+        let members = &parts[range.clone()];
+        let count: u64 = members.iter().map(|p| p.count).sum();
+        let k = members.first().map_or(0, |p| p.cross.len());
+        let mut g = Self {
+            range,
+            count,
+            diag: 0.0,
+            cross: vec![0.0; k],
+            b: vec![0.0; c],
+        };
+        for p in members {
+            // A lone partition has `t = 1`: its own sums, bit for bit.
+            let t = share(p.count, count);
+            g.diag += t * t * p.diag;
+            for (x, &y) in g.cross.iter_mut().zip(p.cross) {
+                *x += t * y;
+            }
+            for (x, &y) in g.b.iter_mut().zip(p.b) {
+                *x += t * y;
+            }
+        }
+        g
+    }
+
+    fn is_active(&self, policy: &SolvePolicy) -> bool {
+        self.count >= policy.min_partition_samples && self.diag > 0.0
+    }
+
+    /// Appends the members' coefficients `α_k = t_k α_G` (`alpha`: `α_G` per channel).
+    fn expand(&self, parts: &[PartitionMoments<'_>], alpha: &[f64], out: &mut CellCoefficients) {
+        for p in &parts[self.range.clone()] {
+            if p.count == 0 {
+                continue;
+            }
+            let t = share(p.count, self.count);
+            out.partition_ids.push(p.id);
+            out.partition_alpha.extend(alpha.iter().map(|a| t * a));
+        }
+    }
+}
+
+/// `t_k = n_k / n_G` (0 for an empty group).
+fn share(n: u64, total: u64) -> f64 {
+    if total == 0 {
+        0.0
+    } else {
+        n as f64 / total as f64
+    }
+}
+
+/// The groups a cell's sampled partitions are solved in: along the binary tree of partition
+/// index ranges (`[lo, hi)` splits at `lo + (hi − lo)/2`, the order in which the light
+/// clustering's median splits number their clusters, so a subtree is a spatially compact set
+/// of lights), a range is split while each half that has samples has at least
+/// `min_group_samples` of them. With 1 every sampled partition is its own group.
+///
+/// Why: a partition's coefficient is fitted from its own samples only (the partition block
+/// is diagonal), so with many lights and few samples per light in a cell the fits follow
+/// the noise of single samples; `Σ_k α_k` then adds the noise of every one of them to every
+/// vertex of the cell. Merging such partitions trades the per-light resolution the data
+/// cannot support for coefficients it can.
+fn partition_groups<'a>(
+    acc: &'a CellAccumulator,
+    policy: &SolvePolicy,
+) -> (Vec<PartitionMoments<'a>>, Vec<Group>) {
+    fn split(
+        parts: &[PartitionMoments<'_>],
+        at: usize,
+        (lo, hi): (u32, u32),
+        min: u64,
+        out: &mut Vec<std::ops::Range<usize>>,
+    ) {
+        let here = &parts[at..];
+        if here.is_empty() {
+            return;
+        }
+        if here.len() == 1 {
+            out.push(at..at + 1);
+            return;
+        }
+        let mid = lo + (hi - lo) / 2;
+        let cut = here.partition_point(|p| p.id < mid);
+        let (left, right) = here.split_at(cut);
+        let enough = |s: &[PartitionMoments<'_>]| {
+            s.is_empty() || s.iter().map(|p| p.count).sum::<u64>() >= min
+        };
+        if enough(left) && enough(right) {
+            split(&parts[..at + cut], at, (lo, mid), min, out);
+            split(parts, at + cut, (mid, hi), min, out);
+        } else {
+            out.push(at..parts.len());
+        }
+    }
+    let parts: Vec<_> = acc.partitions().collect();
+    let mut ranges = Vec::new();
+    let top = acc
+        .layout()
+        .partitions
+        .max(parts.last().map_or(0, |p| p.id + 1));
+    split(
+        &parts,
+        0,
+        (0, top),
+        policy.min_group_samples.max(1),
+        &mut ranges,
+    );
+    let c = acc.color().channels();
+    let groups = ranges
+        .into_iter()
+        .map(|r| Group::of(&parts, r, c))
+        .collect();
+    (parts, groups)
+}
+
 /// Common pre-checks; returns the diagnostics skeleton or the fallback coefficients.
 fn precheck(
     acc: &CellAccumulator,
@@ -590,10 +760,9 @@ pub fn solve(acc: &CellAccumulator, policy: &SolvePolicy) -> CellCoefficients {
     let c = acc.color().channels();
     let ov = active_overlapping(acc);
     let q = ov.len();
-    let is_active = |p: &crate::cell::PartitionMoments<'_>| {
-        p.count >= policy.min_partition_samples && p.diag > 0.0
-    };
-    let active_partitions = acc.partitions().filter(is_active).count();
+    let (parts, groups) = partition_groups(acc, policy);
+    let is_active = |g: &&Group| g.is_active(policy);
+    let active_partitions = groups.iter().filter(is_active).count();
     diag.active_partitions = active_partitions;
     diag.active_overlapping = q;
     if q == 0 && active_partitions == 0 {
@@ -619,7 +788,7 @@ pub fn solve(acc: &CellAccumulator, policy: &SolvePolicy) -> CellCoefficients {
     }
     if q > 0 {
         let mut u = vec![0.0; q];
-        for p in acc.partitions().filter(is_active) {
+        for p in groups.iter().filter(is_active) {
             let dk = p.diag * (1.0 + eps);
             for (a, &ja) in ov.iter().enumerate() {
                 u[a] = p.cross[ja] / dk;
@@ -669,18 +838,20 @@ pub fn solve(acc: &CellAccumulator, policy: &SolvePolicy) -> CellCoefficients {
     // Back-substitution for the partitions [Hua eq. 33].
     let k = acc.layout().overlapping as usize;
     let mut out = CellCoefficients::zero(acc.layout(), acc.color(), diag);
-    out.partition_ids.reserve_exact(active_partitions);
-    out.partition_alpha.reserve_exact(active_partitions * c);
-    for p in acc.partitions().filter(is_active) {
+    let members: usize = groups.iter().filter(is_active).map(|g| g.range.len()).sum();
+    out.partition_ids.reserve_exact(members);
+    out.partition_alpha.reserve_exact(members * c);
+    let mut alpha = [0.0; CHANNELS];
+    for p in groups.iter().filter(is_active) {
         let dk = p.diag * (1.0 + eps);
-        out.partition_ids.push(p.id);
-        for ch in 0..c {
+        for (ch, x) in alpha.iter_mut().enumerate().take(c) {
             let mut num = p.b[ch];
             for (a, &ja) in ov.iter().enumerate() {
                 num -= p.cross[ja] * alpha_o[(a, ch)];
             }
-            out.partition_alpha.push(num / dk);
+            *x = num / dk;
         }
+        p.expand(&parts, &alpha[..c], &mut out);
     }
     for (a, &ja) in ov.iter().enumerate() {
         for ch in 0..c {
@@ -711,10 +882,8 @@ pub fn solve_dense(acc: &CellAccumulator, policy: &SolvePolicy) -> CellCoefficie
     let eps = policy.ridge.max(0.0);
     let c = acc.color().channels();
     let ov = active_overlapping(acc);
-    let parts: Vec<_> = acc
-        .partitions()
-        .filter(|p| p.count >= policy.min_partition_samples && p.diag > 0.0)
-        .collect();
+    let (all, groups) = partition_groups(acc, policy);
+    let parts: Vec<&Group> = groups.iter().filter(|g| g.is_active(policy)).collect();
     let (np, q) = (parts.len(), ov.len());
     diag.active_partitions = np;
     diag.active_overlapping = q;
@@ -762,10 +931,8 @@ pub fn solve_dense(acc: &CellAccumulator, policy: &SolvePolicy) -> CellCoefficie
     let x = chol.solve(&b);
     let mut out = CellCoefficients::zero(acc.layout(), acc.color(), diag);
     for (i, p) in parts.iter().enumerate() {
-        out.partition_ids.push(p.id);
-        for ch in 0..c {
-            out.partition_alpha.push(x[(i, ch)] * scale[i]);
-        }
+        let alpha: Vec<f64> = (0..c).map(|ch| x[(i, ch)] * scale[i]).collect();
+        p.expand(&all, &alpha, &mut out);
     }
     for (jj, &j) in ov.iter().enumerate() {
         for ch in 0..c {
@@ -792,7 +959,7 @@ pub const COEFFICIENTS_MAGIC: [u8; 4] = *b"CVCO";
 /// Encoding version of [`CellCoefficients`].
 pub const COEFFICIENTS_VERSION: u16 = 1;
 
-const FALLBACK_CODES: [FallbackReason; 10] = [
+const FALLBACK_CODES: [FallbackReason; 11] = [
     FallbackReason::Empty,
     FallbackReason::TooFewSamples,
     FallbackReason::TooFewEffectiveSamples,
@@ -803,6 +970,7 @@ const FALLBACK_CODES: [FallbackReason; 10] = [
     FallbackReason::LowImageGain,
     FallbackReason::LowFitGain,
     FallbackReason::NoReduction,
+    FallbackReason::HeldOutLoss,
 ];
 
 impl CellCoefficients {

@@ -217,6 +217,9 @@ pub const RIDGE_STRATIFIED: f64 = 0.5;
 /// `cms`'s `ridge` with independent numbers ([`CmsOptions`]).
 pub const RIDGE_INDEPENDENT: f64 = 0.1;
 
+/// `cms`'s default `min_group_samples` ([`CmsOptions`]).
+pub const CMS_GROUP_SAMPLES: u64 = 16;
+
 /// Options of the `cms` estimator [Hua 2023].
 ///
 /// | parameter | type | default | meaning |
@@ -229,6 +232,7 @@ pub const RIDGE_INDEPENDENT: f64 = 0.1;
 /// | `max_light_components` | u32 | 1024 | more emitters than this are clustered by spatial proximity |
 /// | `ridge` | f64 \| null | null | relative Tikhonov regularisation of each cell system: `A + ridge·diag(A)` shrinks `α` toward the base estimator (`path` with the default `base`); 0.5 scales an uncorrelated coefficient by 2/3. null = by the job's sampler ([`PhasedEstimator::for_sampler`]): **0.5 with the Sobol sampler** ([`RIDGE_STRATIFIED`]: the fits minimise the variance of independent samples, which overstates the per-pixel stratified `path`'s, so they are shrunk toward it; 1 shrank colour-lamp's fits too far, 1.42× → 1.53× at 0.5, and below 0.5 many-lights' sparsely sampled lights lose), **0.1 with the independent one** ([`RIDGE_INDEPENDENT`]: there the fits' objective is the estimator's variance, and less shrinking gains 3–10 % at equal spp on colour-lamp, `manylights-4` and veach-mis d2). Chosen by equal-spp measurements (`docs/bench/README.md`) |
 /// | `min_samples` | u64 | 16 | cells with fewer training samples fall back to the plain estimator |
+/// | `min_group_samples` | u64 | 16 | a cell's light partitions are fitted in groups of at least this many training samples where it has fewer per partition: a range of the light clustering's tree is split while each half with samples has as many ([`crate::solve::SolvePolicy::min_group_samples`]); 1 fits every sampled partition alone. With many lights and few samples per light in a cell, lone fits follow single samples' noise (a scene of 10 080 emissive triangles: 0.18× `path` at equal spp; grouped 1.16×). Chosen by equal-spp measurements ([`CMS_GROUP_SAMPLES`], `docs/bench/README.md`) |
 /// | `base` | `"mis"` \| `"balance"` | `"balance"` | values the fits are trained on and the render phase corrects in cells with coefficients: the job's MIS heuristic (= `path`) or balance, the paper's `f/p` ([`CvBase`]); elsewhere, and in the training samples' image, `path`'s either way. Balance by equal-spp measurements, both samplers (`docs/bench/README.md`) |
 /// | `min_image_gain` | f64 \| null | `3e-4` | the fits are applied only when they are predicted to remove at least this fraction of the image's per-sample (relative) variance, measured on the training samples ([`crate::table::predicted_image_gain`]); below it every cell falls back and the render phase is traced as `path`; a training tile whose own first 2 spp predict less than half of it stops recording (`render::integrator::cv::TRAIN_PROBE_SPP`). null always applies them. Chosen by equal-spp and equal-time measurements (`docs/bench/README.md`) |
 /// | `min_fit_gain` | f64 \| null | `0.2` | the fits are applied only when they remove at least this fraction of the variance at the vertices they control (within each technique: the estimator takes one NEE and one BSDF sample, so the spread between the two techniques is no variance of it), over all cells, measured on the training samples ([`crate::table::predicted_fit_gain`]); below it every cell falls back and the render phase is traced as `path`. It bounds the equal-spp gain at `1/(1 − g)` whatever the image's noise is made of, so a small one cannot pay for the CV's per-sample cost; a training tile whose own first 2 spp predict less than half of it stops recording. null always applies them. Chosen by equal-spp and equal-time measurements (`docs/bench/README.md`) |
@@ -253,6 +257,8 @@ pub struct CmsOptions {
     pub ridge: Option<f64>,
     /// Minimum training samples per cell.
     pub min_samples: u64,
+    /// Light partitions are fitted in groups of at least this many samples.
+    pub min_group_samples: u64,
     /// Base estimator of the controlled direct lighting.
     pub base: CvBase,
     /// Shallowest vertex depth the CV is trained and applied at; `None` = by the sampler
@@ -275,6 +281,7 @@ impl Default for CmsOptions {
             max_light_components: 1024,
             ridge: None,
             min_samples: 16,
+            min_group_samples: CMS_GROUP_SAMPLES,
             base: CvBase::Balance,
             min_depth: None,
             min_image_gain: Some(DEFAULT_MIN_IMAGE_GAIN),
@@ -530,6 +537,10 @@ impl PhasedEstimator {
                 min_samples: o.min_samples,
                 min_image_gain: o.min_image_gain.unwrap_or(f64::NEG_INFINITY),
                 min_fit_gain: o.min_fit_gain.unwrap_or(f64::NEG_INFINITY),
+                min_group_samples: o.min_group_samples,
+                // Training records each cell's halves apart; a cell keeps its fits only
+                // where they remove variance out of sample.
+                halves: crate::solve::CellHalves::CrossFitted,
                 ..crate::solve::SolvePolicy::default()
             },
             Self::OptimalMis(o) => crate::solve::SolvePolicy {

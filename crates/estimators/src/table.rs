@@ -23,7 +23,9 @@ use std::collections::BTreeMap;
 
 use crate::cell::{CellAccumulator, CellError, Reader};
 use crate::perlight::MeanContributionAccumulator;
-use crate::solve::{CellCoefficients, FallbackReason, SolvePolicy, solve, variance_reduction};
+use crate::solve::{
+    CellCoefficients, CellHalves, FallbackReason, SolvePolicy, solve, variance_reduction,
+};
 
 /// Magic bytes of an encoded table.
 pub const TABLE_MAGIC: [u8; 4] = *b"CVCT";
@@ -213,6 +215,72 @@ pub fn solve_table(
         .iter()
         .map(|(k, acc)| (*k, solve(acc, policy)))
         .collect()
+}
+
+/// A cell's two halves ([`CellHalves`]): the even and the odd training samples' sums.
+type Halves<'a> = (Option<&'a CellAccumulator>, Option<&'a CellAccumulator>);
+
+/// The cells of a table keyed by halves (`2c`, `2c + 1`): cell `c`'s merged accumulator (the
+/// even half, then the odd one merged into it) and its halves.
+fn pair_halves(t: &BTreeMap<u64, CellAccumulator>) -> BTreeMap<u64, (CellAccumulator, Halves<'_>)> {
+    let mut out: BTreeMap<u64, (CellAccumulator, Halves<'_>)> = BTreeMap::new();
+    for (&key, acc) in t {
+        let (cell, odd) = (key / 2, key % 2 == 1);
+        match out.get_mut(&cell) {
+            // Keys come in order: the even half (if any) is in already.
+            Some((merged, halves)) => {
+                // Both halves are of one job: their layouts agree (else the odd half is
+                // dropped from the fit, never merged wrongly).
+                if merged.merge(acc).is_ok() {
+                    halves.1 = Some(acc);
+                }
+            }
+            None => {
+                let halves = if odd {
+                    (None, Some(acc))
+                } else {
+                    (Some(acc), None)
+                };
+                out.insert(cell, (acc.clone(), halves));
+            }
+        }
+    }
+    out
+}
+
+/// The fallback of a cell whose fits do not remove variance out of sample
+/// ([`CellHalves::CrossFitted`]): each half is fitted alone (same policy, `min_samples`
+/// halved) and its coefficients applied to the other half's samples; `None` when the sum of
+/// the two [`variance_reduction`]s is positive, when `co` fell back already, or when the
+/// cell lacks a half (nothing to check against: a cell with samples of one parity only).
+///
+/// The halves' fits have half the samples, so they overfit more than the cell's own fit: the
+/// check is conservative, as a held-out estimate of a fit on fewer samples is.
+fn held_out_loss(
+    halves: &Halves<'_>,
+    co: &CellCoefficients,
+    policy: &SolvePolicy,
+) -> Option<CellCoefficients> {
+    let (Some(even), Some(odd)) = *halves else {
+        return None;
+    };
+    if co.is_fallback() {
+        return None;
+    }
+    let half = SolvePolicy {
+        min_samples: policy.min_samples.div_ceil(2),
+        ..*policy
+    };
+    let (fit_even, fit_odd) = (solve(even, &half), solve(odd, &half));
+    let held_out = variance_reduction(odd, &fit_even) + variance_reduction(even, &fit_odd);
+    (held_out <= 0.0).then(|| {
+        CellCoefficients::fallen_back(
+            co.layout(),
+            co.color(),
+            *co.diagnostics(),
+            FallbackReason::HeldOutLoss,
+        )
+    })
 }
 
 /// A merged accumulator table of either record kind: what a training phase produces and
@@ -487,6 +555,21 @@ impl AccumulatorTable {
             out
         }
         let (mut out, sums, image) = match self {
+            Self::Moments(t, image) if policy.halves != CellHalves::None => {
+                let cells = pair_halves(t);
+                let cross = policy.halves == CellHalves::CrossFitted;
+                let out = par(&cells, threads, |(a, halves)| {
+                    let mut co = solve(a, policy);
+                    if cross && let Some(loss) = held_out_loss(halves, &co, policy) {
+                        co = loss;
+                    }
+                    (co, a.rejected())
+                });
+                let merged: BTreeMap<u64, CellAccumulator> =
+                    cells.into_iter().map(|(k, (a, _))| (k, a)).collect();
+                let sums = FitSums::of(&merged, &out.coefficients);
+                (out, Some(sums), *image)
+            }
             Self::Moments(t, image) => {
                 let out = par(t, threads, |a| (solve(a, policy), a.rejected()));
                 let sums = FitSums::of(t, &out.coefficients);

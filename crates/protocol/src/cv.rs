@@ -78,9 +78,10 @@ pub fn table_kind(est: &PhasedEstimator) -> u16 {
     }
 }
 
-/// Exclusive bound of the cell keys of a job: pixels for `optimal_mis` (cells = pixels
-/// [Hua §7.4]), else grid cells × [`NORMAL_BINS`] (the grid's resolution when given, at most
-/// [`MAX_GRID_CELLS`]).
+/// Exclusive bound of the cell keys of a job's training tables: pixels for `optimal_mis`
+/// (cells = pixels [Hua §7.4]), else grid cells × [`NORMAL_BINS`] (the grid's resolution
+/// when given, at most [`MAX_GRID_CELLS`]), twice that for `cms`, which records each cell's
+/// two halves apart.
 pub fn cell_key_limit(est: &PhasedEstimator, job: &ResolvedJob) -> u64 {
     let grid = match est {
         PhasedEstimator::OptimalMis(_) => {
@@ -92,7 +93,12 @@ pub fn cell_key_limit(est: &PhasedEstimator, job: &ResolvedJob) -> u64 {
     let cells = grid.map_or(MAX_GRID_CELLS, |g| {
         g.iter().map(|&r| u64::from(r)).product::<u64>()
     });
-    cells.min(MAX_GRID_CELLS) * NORMAL_BINS
+    let keys = cells.min(MAX_GRID_CELLS) * NORMAL_BINS;
+    // `cms` records each cell's two halves apart (`estimators::solve::CellHalves`).
+    match est {
+        PhasedEstimator::Cms(_) => 2 * keys,
+        _ => keys,
+    }
 }
 
 /// The layout every record of `table` shares (`None` for an empty table), e.g.
@@ -468,7 +474,8 @@ mod tests {
             check_train_block(&est, &job(), &result(vec![wrong])),
             Err(CvError::WrongKind { .. })
         ));
-        let far = table(2, MAX_GRID_CELLS * NORMAL_BINS);
+        // `cms` keys are cell halves: twice the cells.
+        let far = table(2, 2 * MAX_GRID_CELLS * NORMAL_BINS);
         assert!(matches!(
             check_train_block(&est, &job(), &result(vec![block(&far)])),
             Err(CvError::KeyRange { .. })

@@ -93,7 +93,7 @@ use estimators::cell::{
     CellAccumulator, ColorMode, ComponentLayout, CvSample, Technique, training_weight,
 };
 use estimators::perlight::MeanContributionAccumulator;
-use estimators::solve::{CellCoefficients, SolvePolicy, SolveStatus};
+use estimators::solve::{CellCoefficients, CellHalves, SolvePolicy, SolveStatus};
 pub use estimators::spec::{
     CvBase, CvColor, MAX_GRID_CELLS, PhaseSamples, PhasedEstimator, TRAIN_TILE,
 };
@@ -469,8 +469,12 @@ pub struct CoefficientTable {
 
 /// Entries of a row before the partition coefficients: `α_bsdf`.
 const ROW_HEAD: usize = 3;
-/// Largest dense coefficient row (components per cell) of a [`CoefficientTable`].
-const DENSE_ROW_MAX: usize = 257;
+/// Largest dense coefficient row (components per cell) of a [`CoefficientTable`]: the
+/// default 1 024 light clusters and more fit (a row of 1 025 components is 6 KiB; the total
+/// is bounded by [`DENSE_TOTAL_MAX`]). With 1 024 clusters the binary search of the sparse
+/// coefficients cost +30 % render time over `path`, the rows +9 % (10 080 triangle lights,
+/// 384×256, depth 2).
+const DENSE_ROW_MAX: usize = 4097;
 /// Largest number of row entries of a [`CoefficientTable`] (48 MiB); above it (e.g.
 /// `optimal_mis` on a large image with many lights) terms come from the sparse coefficients.
 const DENSE_TOTAL_MAX: usize = 24 << 20;
@@ -823,6 +827,9 @@ struct Policy<'c, 't> {
     first_cell: Option<u32>,
     /// Cell of the current vertex when it is controlled (set by `controls`).
     cell: Option<u32>,
+    /// The sample's half of the training samples (its index's parity) with `cms`, whose
+    /// records go to key `2 · cell + half` ([`CellHalves`]); 0 otherwise.
+    half: u32,
 }
 
 #[inline]
@@ -1012,6 +1019,11 @@ impl VertexObserver for Policy<'_, '_> {
         let mut out = plain;
         match (&mut self.phase, cell) {
             (Phase::Train(cells), Some(key)) => {
+                let key = if kind == Kind::Cms {
+                    2 * key + self.half
+                } else {
+                    key
+                };
                 let w0 = if kind == Kind::OptimalMis {
                     1.0
                 } else {
@@ -1126,6 +1138,14 @@ fn probe_policy(mut policy: SolvePolicy) -> SolvePolicy {
             *m -= PROBE_MARGIN * m.abs();
         }
     }
+    // The probe asks whether the fits could gain anything (in sample, as before the rest of
+    // the samples are recorded): its halves have a sample per pixel each, too few to
+    // cross-fit, and its partitions a few samples each, which groups would merge far more
+    // coarsely than the job's whole training will.
+    if policy.halves != CellHalves::None {
+        policy.halves = CellHalves::Merged;
+    }
+    policy.min_group_samples = 1;
     policy
 }
 
@@ -2043,6 +2063,11 @@ fn run_tile(
                     cv_delta: Vec3::ZERO,
                     first_cell: None,
                     cell: None,
+                    half: if kind == PhaseKind::Train && ctx.kind == Kind::Cms {
+                        s & 1
+                    } else {
+                        0
+                    },
                 };
                 let sample = super::path::trace(rs, st, ray, &mut sampler, &mut pol);
                 rays += u64::from(sample.rays);
