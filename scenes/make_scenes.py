@@ -8,6 +8,10 @@ Usage (from the repository root):
                                                      # Mitsuba 3 XML (inline meshes as OBJ), for rendering
                                                      # it with Mitsuba as a peer / for previews
   python3 scenes/make_scenes.py --cbox-dir PATH      # where the Cornell box OBJs are read from
+  python3 scenes/make_scenes.py --veach-triangles F  # write F: scenes/veach-mis/scene.json with every
+                                                     # sphere lamp as 36 x 36 triangles, each an emitter of
+                                                     # its own (10 080 lights; ~3 MB, not shipped), as the
+                                                     # paper's variant of the scene [Hua §7.3]
 
 Everything is deterministic (fixed seeds), so running the script again reproduces the files
 byte for byte. Only the Python standard library is needed.
@@ -505,6 +509,36 @@ def to_mitsuba(doc, out_dir, assets):
         fh.write("\n".join(x) + "\n")
 
 
+def veach_triangle_lamps(src, stacks=36, slices=36):
+    """The scene `src` (a loaded JSON doc) with every sphere lamp tessellated: `stacks x slices`
+    quads (triangles at the poles), each triangle a shape and so an emitter of its own."""
+    shapes = []
+    for s in src["shapes"]:
+        if s["type"] != "sphere":
+            shapes.append(s)
+            continue
+        c, r = s["center"], s["radius"]
+        pos = []
+        for i in range(stacks + 1):
+            th = math.pi * i / stacks
+            for j in range(slices):
+                ph = 2 * math.pi * j / slices
+                d = (math.sin(th) * math.cos(ph), math.cos(th), math.sin(th) * math.sin(ph))
+                pos.append([c[k] + r * d[k] for k in range(3)])
+        for i in range(stacks):
+            for j in range(slices):
+                a, b = i * slices + j, i * slices + (j + 1) % slices
+                e, f = (i + 1) * slices + j, (i + 1) * slices + (j + 1) % slices
+                # Counter-clockwise seen from outside: the emitting side faces out.
+                tris = ([[a, b, e]] if i > 0 else []) + ([[b, f, e]] if i < stacks - 1 else [])
+                for t in tris:
+                    shapes.append({"type": "mesh", "material": s["material"], "emitter": s["emitter"],
+                                   "positions": [pos[k] for k in t], "indices": [[0, 1, 2]]})
+    out = dict(src)
+    out["shapes"] = shapes
+    return out
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--only", action="append", help="generate only this scene (repeatable)")
@@ -512,7 +546,16 @@ def main():
     ap.add_argument("--cbox-dir", default=DEFAULT_CBOX, help="directory with the cbox_*.obj files")
     ap.add_argument("--museum", default=DEFAULT_MUSEUM, help="museum.exr (copied into envmap/ if missing)")
     ap.add_argument("--mitsuba-xml", default=None, help="also write Mitsuba 3 XML versions under this directory")
+    ap.add_argument("--veach-triangles", default=None,
+                    help="write veach-mis with triangle lamps (10 080 emitters) to this file and exit")
     a = ap.parse_args()
+    if a.veach_triangles:
+        with open(os.path.join(a.out, "veach-mis", "scene.json")) as fh:
+            doc = veach_triangle_lamps(json.load(fh))
+        with open(a.veach_triangles, "w") as fh:
+            json.dump(doc, fh)
+        print(f"wrote {a.veach_triangles}", file=sys.stderr)
+        return 0
     builders = {
         "cornell-box": lambda: (cornell_box(a.cbox_dir), []),
         "veach-mis": lambda: (veach_mis(), []),
