@@ -1138,14 +1138,12 @@ fn probe_policy(mut policy: SolvePolicy) -> SolvePolicy {
             *m -= PROBE_MARGIN * m.abs();
         }
     }
-    // The probe asks whether the fits could gain anything (in sample, as before the rest of
-    // the samples are recorded): its halves have a sample per pixel each, too few to
-    // cross-fit, and its partitions a few samples each, which groups would merge far more
-    // coarsely than the job's whole training will.
+    // The probe's halves have a sample per pixel each: too few to cross-fit. Its fits are
+    // grouped as the job's are (ungrouped, a many-light tile's in-sample gain is its fits'
+    // overfitting).
     if policy.halves != CellHalves::None {
         policy.halves = CellHalves::Merged;
     }
-    policy.min_group_samples = 1;
     policy
 }
 
@@ -2416,6 +2414,16 @@ mod tests {
     #[test]
     fn a_spilled_training_log_keeps_every_sample() {
         let (rs, st) = cms_scene("many-lights", 32, 32, 5);
+        // Every training sample recorded: no probe may stop the tile (a 32 × 32 tile's 2 spp
+        // probe is no measure of the job's fits).
+        let st = RenderSettings {
+            estimator: Estimator::Cms(super::super::cms::CmsOptions {
+                min_image_gain: None,
+                min_fit_gain: None,
+                ..Default::default()
+            }),
+            ..st
+        };
         let mut job = CvJob::new(&rs, &st).unwrap().expect("a phased estimator");
         let tile = TileRect {
             x0: 0,
