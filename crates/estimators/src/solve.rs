@@ -110,6 +110,17 @@ impl Default for SolvePolicy {
     }
 }
 
+impl SolvePolicy {
+    /// The policy for fits on half of a cell's training samples (split-half and held-out
+    /// checks): `min_samples` halved, the rest unchanged.
+    pub fn for_half(&self) -> Self {
+        Self {
+            min_samples: self.min_samples.div_ceil(2),
+            ..*self
+        }
+    }
+}
+
 /// What the keys of an accumulator table are ([`SolvePolicy::halves`]).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum CellHalves {

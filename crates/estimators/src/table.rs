@@ -267,10 +267,7 @@ fn held_out_loss(
     if co.is_fallback() {
         return None;
     }
-    let half = SolvePolicy {
-        min_samples: policy.min_samples.div_ceil(2),
-        ..*policy
-    };
+    let half = policy.for_half();
     let (fit_even, fit_odd) = (solve(even, &half), solve(odd, &half));
     let held_out = variance_reduction(odd, &fit_even) + variance_reduction(even, &fit_odd);
     (held_out <= 0.0).then(|| {

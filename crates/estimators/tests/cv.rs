@@ -1352,6 +1352,15 @@ fn counted_cell(counts: &[usize], seed: u64, relabel: impl Fn(u32) -> (u32, f64)
     out
 }
 
+/// `cms`'s Sobol ridge with partitions fitted in groups of at least `min_group_samples`.
+fn grouped_policy(min_group_samples: u64) -> SolvePolicy {
+    SolvePolicy {
+        ridge: 0.5,
+        min_group_samples,
+        ..SolvePolicy::default()
+    }
+}
+
 #[test]
 fn a_partition_group_solves_as_the_mixture_of_its_members() {
     // Counts 40, 40, 12, 6 with groups of at least 16: the halves [0, 2) and [2, 4) have 80
@@ -1360,11 +1369,7 @@ fn a_partition_group_solves_as_the_mixture_of_its_members() {
     // with partitions 2 and 3 as one partition of that `λ` must give `α_G`, and the members
     // `α_2 = (12/18) α_G`, `α_3 = (6/18) α_G`.
     let counts = [40, 40, 12, 6];
-    let grouped = SolvePolicy {
-        ridge: 0.5,
-        min_group_samples: 16,
-        ..SolvePolicy::default()
-    };
+    let grouped = grouped_policy(16);
     for color in [ColorMode::Rgb, ColorMode::Mono] {
         let cell = counted_cell(&counts, 71, |k| (k, 1.0));
         let acc = accumulate(&cell, 4, 1, color);
@@ -1441,11 +1446,7 @@ fn an_undersampled_half_keeps_its_sibling_in_the_group() {
     // [0, 2) has 80 samples, [2, 4) only 10 < 16: the whole range is one group, every
     // member's `α` the group's times its share of the samples.
     let counts = [40, 40, 6, 4];
-    let policy = SolvePolicy {
-        ridge: 0.5,
-        min_group_samples: 16,
-        ..SolvePolicy::default()
-    };
+    let policy = grouped_policy(16);
     let acc = accumulate(
         &counted_cell(&counts, 72, |k| (k, 1.0)),
         4,
@@ -1528,10 +1529,7 @@ fn halved_table(
 
 #[test]
 fn halves_solve_merged_and_a_fit_that_follows_noise_fails_its_held_out_check() {
-    let base = SolvePolicy {
-        ridge: 0.5,
-        ..SolvePolicy::default()
-    };
+    let base = grouped_policy(1);
     // Two samples per partition: alone, the fits follow the noise (see
     // `grouping_keeps_many_thinly_sampled_partitions_from_fitting_noise`).
     let (noisy, whole) = halved_table(
@@ -1609,10 +1607,7 @@ fn grouping_keeps_many_thinly_sampled_partitions_from_fitting_noise() {
     let train = draw(2, 81);
     let fresh = draw(80, 82);
     let acc = accumulate(&train, p, 1, ColorMode::Rgb);
-    let base = SolvePolicy {
-        ridge: 0.5,
-        ..SolvePolicy::default()
-    };
+    let base = grouped_policy(1);
     let plain_var = held_out_variance(
         &fresh,
         &CellCoefficients::plain(acc.layout(), ColorMode::Rgb),

@@ -14,7 +14,7 @@
 
 use std::collections::BTreeMap;
 
-use estimators::solve::SolveStatus;
+use estimators::solve::{CellHalves, SolveStatus};
 use estimators::spec::{MAX_GRID_CELLS, PhasedEstimator};
 use estimators::surrogate::{encode_surrogate, surrogate_image};
 use estimators::table::{
@@ -80,24 +80,28 @@ pub fn table_kind(est: &PhasedEstimator) -> u16 {
 
 /// Exclusive bound of the cell keys of a job's training tables: pixels for `optimal_mis`
 /// (cells = pixels [Hua §7.4]), else grid cells × [`NORMAL_BINS`] (the grid's resolution
-/// when given, at most [`MAX_GRID_CELLS`]), twice that for `cms`, which records each cell's
-/// two halves apart.
+/// when given, at most [`MAX_GRID_CELLS`]), twice that when the job's solve policy records
+/// each cell's two halves apart (`cms`).
 pub fn cell_key_limit(est: &PhasedEstimator, job: &ResolvedJob) -> u64 {
     let grid = match est {
-        PhasedEstimator::OptimalMis(_) => {
-            return u64::from(job.width) * u64::from(job.height);
-        }
-        PhasedEstimator::Cms(o) => o.grid_resolution,
-        PhasedEstimator::PerLightCv(o) => o.grid_resolution,
+        PhasedEstimator::OptimalMis(_) => None,
+        PhasedEstimator::Cms(o) => Some(o.grid_resolution),
+        PhasedEstimator::PerLightCv(o) => Some(o.grid_resolution),
     };
-    let cells = grid.map_or(MAX_GRID_CELLS, |g| {
-        g.iter().map(|&r| u64::from(r)).product::<u64>()
-    });
-    let keys = cells.min(MAX_GRID_CELLS) * NORMAL_BINS;
-    // `cms` records each cell's two halves apart (`estimators::solve::CellHalves`).
-    match est {
-        PhasedEstimator::Cms(_) => 2 * keys,
-        _ => keys,
+    let cells = match grid {
+        None => u64::from(job.width) * u64::from(job.height),
+        Some(g) => {
+            let cells = g.map_or(MAX_GRID_CELLS, |g| {
+                g.iter().map(|&r| u64::from(r)).product::<u64>()
+            });
+            cells.min(MAX_GRID_CELLS) * NORMAL_BINS
+        }
+    };
+    // A job whose policy records each cell's two halves apart (`CellHalves`, `cms`).
+    if est.solve_policy().halves == CellHalves::None {
+        cells
+    } else {
+        2 * cells
     }
 }
 

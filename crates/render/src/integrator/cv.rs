@@ -431,6 +431,9 @@ struct CvContext<'a> {
     train_log_max: usize,
     /// `optimal_mis`'s `min_split_gain` (`None`: no check; always `None` for the other kinds).
     min_split_gain: Option<f64>,
+    /// Whether training records each cell's halves apart (the job's
+    /// [`SolvePolicy::halves`]): sample `s` of cell `c` under key `2c + s mod 2`.
+    halves: bool,
 }
 
 impl CvContext<'_> {
@@ -827,9 +830,9 @@ struct Policy<'c, 't> {
     first_cell: Option<u32>,
     /// Cell of the current vertex when it is controlled (set by `controls`).
     cell: Option<u32>,
-    /// The sample's half of the training samples (its index's parity) with `cms`, whose
-    /// records go to key `2 · cell + half` ([`CellHalves`]); 0 otherwise.
-    half: u32,
+    /// The training sample's half (its index's parity) when the job records halves
+    /// ([`CvContext::halves`]): its records go to key `2 · cell + half`.
+    half: Option<u32>,
 }
 
 #[inline]
@@ -1019,11 +1022,7 @@ impl VertexObserver for Policy<'_, '_> {
         let mut out = plain;
         match (&mut self.phase, cell) {
             (Phase::Train(cells), Some(key)) => {
-                let key = if kind == Kind::Cms {
-                    2 * key + self.half
-                } else {
-                    key
-                };
+                let key = self.half.map_or(key, |h| 2 * key + h);
                 let w0 = if kind == Kind::OptimalMis {
                     1.0
                 } else {
@@ -1282,6 +1281,7 @@ impl<'a> CvJob<'a> {
                     PhasedEstimator::OptimalMis(o) => o.min_split_gain,
                     _ => None,
                 },
+                halves: estimator.solve_policy().halves != CellHalves::None,
                 base: match estimator.base() {
                     CvBase::Mis => settings.mis,
                     CvBase::Balance => super::MisHeuristic::Balance,
@@ -1910,10 +1910,7 @@ fn split_half_gain(
     film: &Film,
 ) -> Option<f64> {
     const EPS: f64 = 0.01;
-    let half = SolvePolicy {
-        min_samples: policy.min_samples.div_ceil(2),
-        ..*policy
-    };
+    let half = policy.for_half();
     // The change a half's samples get from coefficients fitted on the other half.
     let change = |acc: Option<&CellAccumulator>, other: Option<&CellAccumulator>| {
         let (Some(acc), Some(other)) = (acc, other) else {
@@ -2061,11 +2058,7 @@ fn run_tile(
                     cv_delta: Vec3::ZERO,
                     first_cell: None,
                     cell: None,
-                    half: if kind == PhaseKind::Train && ctx.kind == Kind::Cms {
-                        s & 1
-                    } else {
-                        0
-                    },
+                    half: (kind == PhaseKind::Train && ctx.halves).then_some(s & 1),
                 };
                 let sample = super::path::trace(rs, st, ray, &mut sampler, &mut pol);
                 rays += u64::from(sample.rays);
