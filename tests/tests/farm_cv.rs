@@ -46,12 +46,13 @@ fn local_cv_exr(
     local_cv(scene, estimator, job).0
 }
 
-/// [`local_cv_exr`] and the in-process run's predicted image and fit gains.
+/// [`local_cv_exr`] and the in-process run's predicted image and fit gains and the weight of
+/// its uncontrolled samples.
 fn local_cv(
     scene: &serde_json::Value,
     estimator: &serde_json::Value,
     job: &ResolvedJob,
-) -> (Vec<u8>, [Option<f64>; 2]) {
+) -> (Vec<u8>, [Option<f64>; 3]) {
     let (loaded, settings) = local_scene(scene, &[], job);
     let est: render::integrator::Estimator =
         serde_json::from_value(estimator.clone()).expect("render estimator");
@@ -72,7 +73,11 @@ fn local_cv(
     }
     (
         film_exr(&film, job),
-        [report.predicted_image_gain, report.predicted_fit_gain],
+        [
+            report.predicted_image_gain,
+            report.predicted_fit_gain,
+            report.uncontrolled_weight,
+        ],
     )
 }
 
@@ -173,13 +178,23 @@ fn cms_one_vs_three(backend: Backend) {
     // The image variance travels with the training tables: the farm predicts the same gains
     // as the in-process driver, to the bit (compared as the stats carry them, through JSON).
     let barrier = train_barrier(&one);
-    let local_gain = serde_json::from_str::<[Option<f64>; 2]>(
+    let [image_gain, fit_gain, weight] = serde_json::from_str::<[Option<f64>; 3]>(
         &serde_json::to_string(&local_gain).expect("json"),
     )
     .expect("json");
+    // The render phase ran with the CV: its samples and the training phases' were combined
+    // by variance, with the in-process driver's weight (below the 17 of 24 samples' share).
+    let w = one.stats["uncontrolled_weight"].as_f64();
+    assert!(w.is_some_and(|w| w > 0.0 && w < 1.0), "{}", one.stats);
+    assert_eq!(
+        w.map(f64::to_bits),
+        weight.map(f64::to_bits),
+        "{}",
+        one.stats
+    );
     for (name, local) in ["predicted_image_gain", "predicted_fit_gain"]
         .into_iter()
-        .zip(local_gain)
+        .zip([image_gain, fit_gain])
     {
         // Computed, whatever its sign (the Cornell box's fits add a little variance within
         // the techniques: both gains are negative there).
@@ -253,6 +268,12 @@ fn a_switched_off_cms_job_has_the_local_bits() {
     let est = serde_json::json!({ "kind": "cms", "min_image_gain": 0.9 });
     let run = run_job(Backend::Sqlite, 2, &spec(&scene, est.clone(), 3));
     assert!(run.exr == local_cv_exr(&scene, &est, &run.status.job));
+    // Traced as `path`: the phases merged plainly.
+    assert!(
+        run.stats.get("uncontrolled_weight").is_none(),
+        "{}",
+        run.stats
+    );
     let barrier = train_barrier(&run);
     assert_eq!(barrier["cells_solved"].as_u64(), Some(0), "{barrier}");
     assert!(

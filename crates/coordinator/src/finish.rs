@@ -280,26 +280,88 @@ async fn rel_mse_through(
     phases: &[PhaseRow],
     end_seq: i64,
 ) -> Result<f64, FinishError> {
-    let mut blobs = Vec::new();
+    let mut blobs = PhaseBlobs::default();
     for (i, p) in phases.iter().enumerate() {
         let mut b = state.store.phase_results(job.id, p.idx).await?;
         if i + 1 == phases.len() {
             b.truncate(end_seq.max(0) as usize);
         }
-        blobs.extend(b);
+        blobs.push(state, p, b).await?;
     }
     let max_pixels = state.config.limits.max_pixels as usize;
     let r = job.resolved;
     tokio::task::spawn_blocking(move || {
-        let mut acc = ImageAccumulator::new(r.width, r.height);
-        for t in decode_parallel(&blobs, max_pixels)? {
-            acc.add(&t)
-                .map_err(|e| FinishError::Corrupt(e.to_string()))?;
-        }
-        Ok(acc.finish().estimated_rel_mse())
+        Ok(blobs
+            .assemble(r.width, r.height, max_pixels)?
+            .estimated_rel_mse())
     })
     .await
     .map_err(|e| FinishError::Image(e.to_string()))?
+}
+
+/// A job's stored results in canonical (phase, task) order, those of a render phase that ran
+/// with the CV apart ([`ImageAccumulator::add_controlled`]).
+#[derive(Default)]
+struct PhaseBlobs {
+    plain: Vec<Vec<u8>>,
+    controlled: Vec<Vec<u8>>,
+}
+
+impl PhaseBlobs {
+    /// Appends `blobs`, the results of `phase`.
+    async fn push(
+        &mut self,
+        state: &AppState,
+        phase: &PhaseRow,
+        blobs: Vec<Vec<u8>>,
+    ) -> Result<(), FinishError> {
+        if renders_with_cv(state, phase).await? {
+            self.controlled.extend(blobs);
+        } else {
+            self.plain.extend(blobs);
+        }
+        Ok(())
+    }
+
+    fn len(&self) -> usize {
+        self.plain.len() + self.controlled.len()
+    }
+
+    /// The image: decoded on all cores, summed in canonical order (the bits do not depend on
+    /// threads).
+    fn assemble(
+        &self,
+        width: u32,
+        height: u32,
+        max_pixels: usize,
+    ) -> Result<protocol::assemble::AssembledImage, FinishError> {
+        let corrupt = |e: protocol::assemble::OutOfBounds| FinishError::Corrupt(e.to_string());
+        let mut acc = ImageAccumulator::new(width, height);
+        for t in decode_parallel(&self.plain, max_pixels)? {
+            acc.add(&t).map_err(corrupt)?;
+        }
+        for t in decode_parallel(&self.controlled, max_pixels)? {
+            acc.add_controlled(&t).map_err(corrupt)?;
+        }
+        Ok(acc.finish())
+    }
+}
+
+/// Whether `phase` rendered with the CV: a render phase whose coefficient table controls
+/// some cell ([`estimators::table::SolvedTable::controls_any`], the test the workers' tiles
+/// make); its samples are then combined with the others by variance.
+async fn renders_with_cv(state: &AppState, phase: &PhaseRow) -> Result<bool, FinishError> {
+    let (PhaseKind::Render, Some(hash)) = (phase.kind, &phase.coefficients) else {
+        return Ok(false);
+    };
+    let blob = state
+        .store
+        .get_blob(hash)
+        .await?
+        .ok_or_else(|| FinishError::Corrupt(format!("coefficient table {hash} is missing")))?;
+    let solved = estimators::table::SolvedTable::decode(&blob)
+        .map_err(|e| FinishError::Corrupt(format!("coefficient table {hash}: {e}")))?;
+    Ok(solved.controls_any())
 }
 
 /// Finishes `job_id` if its last phase is complete (the reaper's and the upload's entry
@@ -466,7 +528,7 @@ async fn finish(
     phases: &[PhaseRow],
 ) -> Result<Advance, FinishError> {
     let store = &state.store;
-    let mut blobs = Vec::new();
+    let mut blobs = PhaseBlobs::default();
     let mut attempts = 0;
     for p in phases {
         let b = store.phase_results(job.id, p.idx).await?;
@@ -479,7 +541,7 @@ async fn finish(
             )));
         }
         attempts += store.progress(job.id, p.idx).await?.attempts;
-        blobs.extend(b);
+        blobs.push(state, p, b).await?;
     }
     tracing::debug!(results = blobs.len(), "assembly: results read");
     let max_pixels = state.config.limits.max_pixels as usize;
@@ -508,21 +570,13 @@ async fn finish(
 
 fn build_outputs(
     job: &JobRow,
-    blobs: &[Vec<u8>],
+    blobs: &PhaseBlobs,
     max_pixels: usize,
     attempts: i64,
     phases: &[PhaseRow],
 ) -> Result<[Vec<u8>; 3], FinishError> {
     let r = &job.resolved;
-    // Decoded on all cores, summed in canonical order (the bits do not depend on threads).
-    let tiles = decode_parallel(blobs, max_pixels)?;
-    let mut acc = ImageAccumulator::new(r.width, r.height);
-    for tile in &tiles {
-        acc.add(tile)
-            .map_err(|e| FinishError::Corrupt(e.to_string()))?;
-    }
-    drop(tiles);
-    let img = acc.finish();
+    let img = blobs.assemble(r.width, r.height, max_pixels)?;
     // The EXR and the preview are independent: encoded side by side.
     let (exr, png) = std::thread::scope(|s| {
         let png = s.spawn(|| {
@@ -569,6 +623,7 @@ fn build_outputs(
         tasks: blobs.len() as u64,
         attempts: attempts.max(0) as u64,
         effects: job.effects.clone(),
+        uncontrolled_weight: img.uncontrolled_weight,
     };
     let stats = serde_json::to_vec_pretty(&stats).map_err(|e| FinishError::Image(e.to_string()))?;
     Ok([exr, png, stats])

@@ -340,6 +340,15 @@ impl CellCoefficients {
         matches!(self.diagnostics.status, SolveStatus::Fallback(_))
     }
 
+    /// True when the cell changes no estimate: a fallback, or every `α` zero (the base
+    /// estimate bit for bit; a render phase skips such cells).
+    pub fn is_zero(&self) -> bool {
+        let k = self.layout.overlapping as usize;
+        self.is_fallback()
+            || (self.partitions().all(|(_, a)| a == [0.0; CHANNELS])
+                && (0..k).all(|j| self.alpha_overlapping(j) == [0.0; CHANNELS]))
+    }
+
     fn broadcast(&self, a: &[f64]) -> [f64; CHANNELS] {
         if a.len() == 1 {
             [a[0]; CHANNELS]

@@ -226,7 +226,7 @@ pub const CMS_GROUP_SAMPLES: u64 = 16;
 /// |---|---|---|---|
 /// | `relative` | bool | `true` | optimise relative variance: weight training samples by `1/(surrogate + 0.01)²` [Hua eq. 25] |
 /// | `color` | `"rgb"` \| `"mono"` | `"rgb"` | coefficients per channel or shared [Hua §4.3] |
-/// | `training_spp` | u32 | 16 | samples per pixel of the training phase (kept in the image) |
+/// | `training_spp` | u32 | 16 | samples per pixel of the training phase (kept in the image, weighed against the render phase's by their variance: [`crate::composite::phase_weight`]) |
 /// | `surrogate_spp` | u32 | 1 | samples per pixel of the surrogate image (only with `relative`; kept in the image) |
 /// | `grid_resolution` | `[nx, ny, nz]` \| null | null | cells per axis over the scene bounds; null = adaptive (≈ 16×16 pixels per cell) |
 /// | `max_light_components` | u32 | 1024 | more emitters than this are clustered by spatial proximity |
@@ -294,7 +294,7 @@ impl Default for CmsOptions {
 ///
 /// | parameter | type | default | meaning |
 /// |---|---|---|---|
-/// | `training_spp` | u32 | 16 | samples per pixel of the training phase (kept in the image) |
+/// | `training_spp` | u32 | 16 | samples per pixel of the training phase (kept in the image, weighed against the render phase's by their variance: [`crate::composite::phase_weight`]) |
 /// | `grid_resolution` | `[nx, ny, nz]` \| null | null | cells per axis; null = adaptive (≈ 16×16 pixels per cell) |
 /// | `max_light_components` | u32 | 1024 | more emitters than this are clustered by spatial proximity |
 /// | `relative` | bool | `true` | weigh each training vertex by `1/(surrogate + 0.01)²` [Hua eq. 25] (times its squared throughput [Hua eq. 29]) when predicting whether a cell's coefficients reduce its variance ([`crate::perlight`]); the coefficients themselves stay the cell means [Hua §7.2] |
@@ -344,7 +344,7 @@ impl Default for PerLightCvOptions {
 ///
 /// | parameter | type | default | meaning |
 /// |---|---|---|---|
-/// | `training_spp` | u32 | 16 | samples per pixel of the training phase (kept in the image) |
+/// | `training_spp` | u32 | 16 | samples per pixel of the training phase (kept in the image, weighed against the render phase's by their variance: [`crate::composite::phase_weight`]) |
 /// | `color` | `"rgb"` \| `"mono"` | `"rgb"` | coefficients per channel or shared |
 /// | `max_light_components` | u32 | 1024 | more emitters than this are clustered by spatial proximity |
 /// | `ridge` | f64 | `1e-6` | relative Tikhonov regularisation |

@@ -23,6 +23,33 @@ pub struct PixelMoments {
     pub count: u64,
 }
 
+impl PixelMoments {
+    /// Variance of the mean per radiance channel, `((Σx² − n·mean²)/(n − 1)).max(0)/n` in
+    /// this operation order (the film's formula); 0 with fewer than 2 samples.
+    pub fn variance_of_mean(&self) -> [f64; 3] {
+        if self.count < 2 {
+            return [0.0; 3];
+        }
+        let n = self.count as f64;
+        std::array::from_fn(|c| {
+            let mean = self.sum[c] / n;
+            ((self.sum_sq[c] - n * mean * mean) / (n - 1.0)).max(0.0) / n
+        })
+    }
+
+    /// Both pixels' samples as one set (every sum added).
+    pub fn merged(&self, other: &PixelMoments) -> PixelMoments {
+        let add = |a: [f64; 3], b: [f64; 3]| std::array::from_fn(|c| a[c] + b[c]);
+        PixelMoments {
+            sum: add(self.sum, other.sum),
+            sum_sq: add(self.sum_sq, other.sum_sq),
+            albedo: add(self.albedo, other.albedo),
+            normal: add(self.normal, other.normal),
+            count: self.count + other.count,
+        }
+    }
+}
+
 fn f32c(v: f64) -> f32 {
     v.clamp(-f64::from(f32::MAX), f64::from(f32::MAX)) as f32
 }

@@ -316,6 +316,15 @@ pub struct SolvedTable {
     pub switched_off: Option<FallbackReason>,
 }
 
+impl SolvedTable {
+    /// Whether a render phase with these coefficients controls any vertex: some cell's `α`
+    /// is not zero ([`CellCoefficients::is_zero`]). Without, the phase is traced as `path`
+    /// and its samples merge plainly with the others.
+    pub fn controls_any(&self) -> bool {
+        self.coefficients.values().any(|c| !c.is_zero())
+    }
+}
+
 /// The image variance of two merged accumulator tables ([`AccumulatorTable::Moments`]):
 /// their sum, unknown as soon as one is.
 pub fn add_image_variances(a: Option<f64>, b: Option<f64>) -> Option<f64> {
@@ -423,6 +432,15 @@ impl SolvedTable {
     /// The wire encoding ([`KIND_COEFFICIENTS`]).
     pub fn encode(&self) -> Vec<u8> {
         encode_table(&self.coefficients)
+    }
+
+    /// Decodes [`Self::encode`]'s bytes (validating everything): the coefficients; the
+    /// fields the wire does not carry are their defaults.
+    pub fn decode(bytes: &[u8]) -> Result<Self, CellError> {
+        Ok(Self {
+            coefficients: decode_table(bytes)?,
+            ..Self::default()
+        })
     }
 }
 

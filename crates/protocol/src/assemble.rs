@@ -6,6 +6,14 @@
 //! workers. The beauty value is the box-filtered mean `sum / count` (DESIGN §3), the variance
 //! layer the estimated variance of that mean, `(Σx² − n·mean²) / (n − 1) / n` — the formulas
 //! and operation order of `render::film::Pixel`, so a farm image equals a local render bit for bit.
+//!
+//! A phased CV job's render-phase blocks, when the phase ran with the CV, go in with
+//! [`ImageAccumulator::add_controlled`]: they are summed apart and combined with the other
+//! phases' samples by one image-wide inverse-variance weight
+//! ([`estimators::composite::phase_weight`], [`estimators::composite::combine_phases`]), as
+//! `render::integrator::cv::combine_phase_films` combines a local render's films.
+
+use estimators::composite::{combine_phases, phase_weight};
 
 use crate::frame::{PixelRecord, TileResult};
 
@@ -15,6 +23,8 @@ pub struct ImageAccumulator {
     width: u32,
     height: u32,
     pixels: Vec<PixelRecord>,
+    /// The sums of the blocks rendered with the CV, once one was added.
+    controlled: Option<Vec<PixelRecord>>,
 }
 
 /// The assembled image: interleaved RGB (or XYZ for normals) `f32` layers, row-major, top row first.
@@ -34,6 +44,10 @@ pub struct AssembledImage {
     pub normal: Vec<f32>,
     /// Samples per pixel.
     pub spp: Vec<u64>,
+    /// Weight of the samples added with [`ImageAccumulator::add`] when blocks were added with
+    /// [`ImageAccumulator::add_controlled`] ([`phase_weight`]); `None` when all were merged
+    /// plainly.
+    pub uncontrolled_weight: Option<f64>,
 }
 
 /// A block that does not fit the image.
@@ -55,48 +69,51 @@ impl ImageAccumulator {
             width,
             height,
             pixels: vec![PixelRecord::default(); width as usize * height as usize],
+            controlled: None,
         }
     }
 
     /// Adds one tile's sums. Call in canonical task order.
     pub fn add(&mut self, block: &TileResult) -> Result<(), OutOfBounds> {
-        let r = block.header.rect;
-        if !r.fits_in(self.width, self.height) || block.pixels.len() != r.pixel_count() {
-            return Err(OutOfBounds {
-                x0: r.x0,
-                y0: r.y0,
-                width: r.width,
-                height: r.height,
-                iw: self.width,
-                ih: self.height,
-            });
-        }
-        for ty in 0..r.height as usize {
-            let dst_row = (r.y0 as usize + ty) * self.width as usize + r.x0 as usize;
-            let src_row = ty * r.width as usize;
-            for tx in 0..r.width as usize {
-                let d = &mut self.pixels[dst_row + tx];
-                let s = &block.pixels[src_row + tx];
-                for c in 0..3 {
-                    d.sum[c] += s.sum[c];
-                    d.sum_sq[c] += s.sum_sq[c];
-                    d.albedo[c] += s.albedo[c];
-                    d.normal[c] += s.normal[c];
-                }
-                d.count += s.count;
-            }
-        }
-        Ok(())
+        let (w, h) = (self.width, self.height);
+        add_block(&mut self.pixels, w, h, block)
     }
 
-    /// The per-pixel sums so far.
+    /// Adds one tile of a render phase that ran with the CV: summed apart from the other
+    /// phases' samples and combined with them by variance in [`Self::finish`]. Call in
+    /// canonical task order.
+    pub fn add_controlled(&mut self, block: &TileResult) -> Result<(), OutOfBounds> {
+        let (w, h, n) = (self.width, self.height, self.pixels.len());
+        let sums = self
+            .controlled
+            .get_or_insert_with(|| vec![PixelRecord::default(); n]);
+        add_block(sums, w, h, block)
+    }
+
+    /// The per-pixel sums so far (without the blocks added with [`Self::add_controlled`]).
     pub fn pixels(&self) -> &[PixelRecord] {
         &self.pixels
     }
 
     /// Means and variances (pixels without samples are black with zero variance).
     pub fn finish(&self) -> AssembledImage {
-        let n = self.pixels.len();
+        let combined;
+        let mut weight = None;
+        let pixels = match &self.controlled {
+            None => &self.pixels,
+            Some(c) => {
+                let w = phase_weight(self.pixels.iter().zip(c));
+                weight = w;
+                combined = self
+                    .pixels
+                    .iter()
+                    .zip(c)
+                    .map(|(u, c)| combine_phases(u, c, w))
+                    .collect::<Vec<_>>();
+                &combined
+            }
+        };
+        let n = pixels.len();
         let mut out = AssembledImage {
             width: self.width,
             height: self.height,
@@ -105,8 +122,9 @@ impl ImageAccumulator {
             albedo: Vec::with_capacity(3 * n),
             normal: Vec::with_capacity(3 * n),
             spp: Vec::with_capacity(n),
+            uncontrolled_weight: weight,
         };
-        for p in &self.pixels {
+        for p in pixels {
             // The same formulas, in the same f64 operation order, as `render::film::Pixel`, so
             // a farm image equals a local render bit for bit.
             let n = p.count.max(1) as f64;
@@ -126,6 +144,42 @@ impl ImageAccumulator {
         }
         out
     }
+}
+
+/// Adds `block`'s sums to the `width × height` image `pixels`.
+fn add_block(
+    pixels: &mut [PixelRecord],
+    width: u32,
+    height: u32,
+    block: &TileResult,
+) -> Result<(), OutOfBounds> {
+    let r = block.header.rect;
+    if !r.fits_in(width, height) || block.pixels.len() != r.pixel_count() {
+        return Err(OutOfBounds {
+            x0: r.x0,
+            y0: r.y0,
+            width: r.width,
+            height: r.height,
+            iw: width,
+            ih: height,
+        });
+    }
+    for ty in 0..r.height as usize {
+        let dst_row = (r.y0 as usize + ty) * width as usize + r.x0 as usize;
+        let src_row = ty * r.width as usize;
+        for tx in 0..r.width as usize {
+            let d = &mut pixels[dst_row + tx];
+            let s = &block.pixels[src_row + tx];
+            for c in 0..3 {
+                d.sum[c] += s.sum[c];
+                d.sum_sq[c] += s.sum_sq[c];
+                d.albedo[c] += s.albedo[c];
+                d.normal[c] += s.normal[c];
+            }
+            d.count += s.count;
+        }
+    }
+    Ok(())
 }
 
 impl AssembledImage {

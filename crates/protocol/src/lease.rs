@@ -264,6 +264,11 @@ pub struct JobStats {
     pub attempts: u64,
     /// Effects and techniques simulated (empty until the renderer reports them).
     pub effects: Vec<String>,
+    /// Weight of the samples rendered without the CV (surrogate and training phases) in the
+    /// image, the render phase's samples the rest (`protocol::assemble`); absent when all
+    /// phases were merged plainly.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub uncontrolled_weight: Option<f64>,
 }
 
 /// Time spent in one phase, and what its barrier computed.

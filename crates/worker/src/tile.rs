@@ -292,11 +292,14 @@ impl Prepared {
 
 /// Renders every task of a job's phase plan in-process, in canonical order, performs the
 /// barriers the way the coordinator does (surrogate image, merge in task order, solve, each
-/// blob through its wire encoding) and assembles all phases' pixels in (phase, task) order.
+/// blob through its wire encoding) and assembles all phases' pixels in (phase, task) order,
+/// a render phase with the CV apart ([`ImageAccumulator::add_controlled`]).
 pub fn render_local(prepared: &Prepared, job: &ResolvedJob) -> Result<AssembledImage, TaskError> {
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     let mut acc = ImageAccumulator::new(job.width, job.height);
     let mut inputs = PhaseInputs::default();
+    // Whether the render phase runs with the CV (its samples are then combined by variance).
+    let mut controlled = false;
     for phase in plan_phases(job, &prepared.estimator) {
         let mut results = Vec::with_capacity(phase.tasks.len());
         for t in &phase.tasks {
@@ -323,14 +326,21 @@ pub fn render_local(prepared: &Prepared, job: &ResolvedJob) -> Result<AssembledI
                     .map(|r| cv::check_train_block(&p, job, r))
                     .collect::<Result<Vec<_>, _>>()?;
                 let merged = cv::merge_train(cv::table_kind(&p), tables, threads)?;
-                let blob = merged.solve(&p.solve_policy(), threads).encode();
+                let solved = merged.solve(&p.solve_policy(), threads);
+                controlled = solved.controls_any();
+                let blob = solved.encode();
                 let hash = protocol::hash::sha256_hex(&blob);
                 inputs.coefficients = Some(prepared.coefficients(&hash, &blob)?);
             }
             _ => {}
         }
         for r in &results {
-            acc.add(r).map_err(cv::CvError::from)?;
+            if phase.kind == PhaseKind::Render && controlled {
+                acc.add_controlled(r)
+            } else {
+                acc.add(r)
+            }
+            .map_err(cv::CvError::from)?;
         }
     }
     Ok(acc.finish())

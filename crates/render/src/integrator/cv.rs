@@ -92,6 +92,7 @@ use std::time::Instant;
 use estimators::cell::{
     CellAccumulator, ColorMode, ComponentLayout, CvSample, Technique, training_weight,
 };
+use estimators::composite::{combine_phases, phase_weight};
 use estimators::perlight::MeanContributionAccumulator;
 use estimators::solve::{CellCoefficients, CellHalves, SolvePolicy, SolveStatus};
 pub use estimators::spec::{
@@ -104,7 +105,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::{Estimator, RenderError, RenderScene, RenderSettings, VertexObserver, VertexRecord};
-use crate::film::{Film, FilmLayer};
+use crate::film::{Film, FilmLayer, Pixel};
 use crate::light::Lights;
 use crate::sampler::Sampler;
 use crate::tile::{RenderOptions, RenderStats, TileRect};
@@ -193,8 +194,13 @@ pub struct EstimatorReport {
     pub effects: Vec<String>,
     /// CV-specific seconds outside the sample loops (denoise + merge + solve).
     pub cv_overhead_seconds: f64,
-    /// Extra EXR layers: `cv_term` (per-pixel mean of controlled − plain, so
-    /// `beauty − cv_term` is the plain estimate from the same samples) and `cell` (cell id of
+    /// Weight of the samples rendered without the CV (surrogate and training phases) in the
+    /// image, the rest the render phase's ([`estimators::composite::phase_weight`]); `null`
+    /// when the phases were merged plainly (no cell controlled, or too few samples).
+    pub uncontrolled_weight: Option<f64>,
+    /// Extra EXR layers: `cv_term` (per-pixel CV correction in the image: the render phase's
+    /// mean of controlled − plain times its weight, so `beauty − cv_term` is the same
+    /// combination of the plain estimates from the same samples) and `cell` (cell id of
     /// the first vertex, −1 for none). Not serialised.
     #[serde(skip)]
     pub layers: Vec<FilmLayer>,
@@ -1540,7 +1546,7 @@ impl<'a> CvJob<'a> {
                 .ok()
                 .and_then(|k| table.slot.get_mut(k))
                 .ok_or(bad("cell key out of range"))?;
-            if is_zero(co) {
+            if co.is_zero() {
                 // α ≡ 0 gives the base estimate bit for bit: skip the per-sample CV terms.
                 continue;
             }
@@ -1588,14 +1594,6 @@ impl<'a> CvJob<'a> {
             cell_id: t.cell_id,
         }
     }
-}
-
-/// Whether every coefficient is zero (a fallback cell or an all-zero fit).
-fn is_zero(co: &CellCoefficients) -> bool {
-    let k = co.layout().overlapping as usize;
-    co.is_fallback()
-        || (co.partitions().all(|(_, a)| a == [0.0; 3])
-            && (0..k).all(|j| co.alpha_overlapping(j) == [0.0; 3]))
 }
 
 /// The per-pixel moments of a film, as [`estimators::surrogate::surrogate_image`] takes them.
@@ -2277,8 +2275,9 @@ pub fn render_estimator_image(
         let outs = par_tiles(&pool, &tiles, &ph.render, &tick, |t| {
             job.render_tile(t, ph.render.clone(), &table)
         });
+        let mut rfilm = Film::new(rs.width, rs.height);
         for (o, t) in outs.iter().zip(&tiles) {
-            film.merge(&o.out.film);
+            rfilm.merge(&o.out.film);
             rays += o.out.rays;
             let mut i = 0;
             for y in t.y0..t.y0 + t.height {
@@ -2287,6 +2286,25 @@ pub fn render_estimator_image(
                     cv_sum[p] = o.cv_sum[i];
                     cell_id[p] = o.cell_id[i];
                     i += 1;
+                }
+            }
+        }
+        // Samples rendered with the CV weigh by their variance; a render phase traced as
+        // `path` (no cell controlled) is merged plainly: the job then *is* `path`, bit for bit.
+        if traces_as_path(&job.ctx, PhaseKind::Apply, Some(&table)) {
+            film.merge(&rfilm);
+        } else {
+            let plain = std::mem::replace(&mut film, Film::new(0, 0));
+            let w;
+            (film, w) = combine_phase_films(&plain, &rfilm);
+            report.uncontrolled_weight = w;
+            // The render phase's share of each pixel, for the CV layer.
+            if let Some(w) = w {
+                for ((s, u), c) in cv_sum.iter_mut().zip(&plain.pixels).zip(&rfilm.pixels) {
+                    if u.count >= 2 && c.count >= 2 {
+                        let k = (1.0 - w) * (u.count + c.count) as f64 / c.count as f64;
+                        *s = s.map(|v| v * k);
+                    }
                 }
             }
         }
@@ -2317,6 +2335,29 @@ pub fn render_estimator_image(
         seconds: start.elapsed().as_secs_f64(),
     };
     Ok((film, stats, report))
+}
+
+/// The image of a phased job: `plain`'s samples (surrogate and training, `path`'s) and
+/// `controlled`'s (the render phase with the CV) combined with one image-wide
+/// inverse-variance weight ([`estimators::composite::phase_weight`],
+/// [`estimators::composite::combine_phases`]), as the farm's assembly combines them, and
+/// the weight of `plain`'s samples (`None`: merged plainly). Both films cover the image.
+pub fn combine_phase_films(plain: &Film, controlled: &Film) -> (Film, Option<f64>) {
+    let (u, c) = (film_moments(plain), film_moments(controlled));
+    let w = phase_weight(u.iter().zip(&c));
+    let mut out = plain.clone();
+    out.rejected += controlled.rejected;
+    for ((px, u), c) in out.pixels.iter_mut().zip(&u).zip(&c) {
+        let m = combine_phases(u, c, w);
+        *px = Pixel {
+            sum: m.sum,
+            sum_sq: m.sum_sq,
+            count: m.count,
+            albedo_sum: m.albedo,
+            normal_sum: m.normal,
+        };
+    }
+    (out, w)
 }
 
 impl CvJob<'_> {
