@@ -128,14 +128,8 @@ impl ImageAccumulator {
             // The same formulas, in the same f64 operation order, as `render::film::Pixel`, so
             // a farm image equals a local render bit for bit.
             let n = p.count.max(1) as f64;
-            for c in 0..3 {
-                let mean = p.sum[c] / n;
-                out.beauty.push(mean as f32);
-                let var = if p.count < 2 {
-                    0.0
-                } else {
-                    ((p.sum_sq[c] - n * mean * mean) / (n - 1.0)).max(0.0) / n
-                };
+            for (c, var) in p.variance_of_mean().into_iter().enumerate() {
+                out.beauty.push((p.sum[c] / n) as f32);
                 out.variance.push(var as f32);
                 out.albedo.push((p.albedo[c] / n) as f32);
                 out.normal.push((p.normal[c] / n) as f32);
@@ -169,14 +163,7 @@ fn add_block(
         let src_row = ty * r.width as usize;
         for tx in 0..r.width as usize {
             let d = &mut pixels[dst_row + tx];
-            let s = &block.pixels[src_row + tx];
-            for c in 0..3 {
-                d.sum[c] += s.sum[c];
-                d.sum_sq[c] += s.sum_sq[c];
-                d.albedo[c] += s.albedo[c];
-                d.normal[c] += s.normal[c];
-            }
-            d.count += s.count;
+            *d = d.merged(&block.pixels[src_row + tx]);
         }
     }
     Ok(())

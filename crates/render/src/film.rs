@@ -15,6 +15,7 @@
 //! - variance of the mean `Var[μ] = s² / n`, with the unbiased sample variance
 //!   `s² = (sum_sq − n μ²) / (n − 1)` (0 when `n < 2`).
 
+use estimators::surrogate::PixelMoments;
 use glam::Vec3;
 
 /// The f64 accumulators of one pixel.
@@ -77,14 +78,33 @@ impl Pixel {
         })
     }
 
-    /// Variance of the mean per channel (0 with fewer than 2 samples).
+    /// Variance of the mean per channel (0 with fewer than 2 samples;
+    /// [`PixelMoments::variance_of_mean`], the farm's formula).
     pub fn variance_of_mean(&self) -> [f64; 3] {
-        if self.count < 2 {
-            return [0.0; 3];
+        self.moments().variance_of_mean()
+    }
+
+    /// The sums as the farm's records and the estimators take them.
+    pub fn moments(&self) -> PixelMoments {
+        PixelMoments {
+            sum: self.sum,
+            sum_sq: self.sum_sq,
+            albedo: self.albedo_sum,
+            normal: self.normal_sum,
+            count: self.count,
         }
-        let n = self.count as f64;
-        self.squared_deviations()
-            .map(|d| (d / (n - 1.0)).max(0.0) / n)
+    }
+}
+
+impl From<PixelMoments> for Pixel {
+    fn from(m: PixelMoments) -> Self {
+        Pixel {
+            sum: m.sum,
+            sum_sq: m.sum_sq,
+            count: m.count,
+            albedo_sum: m.albedo,
+            normal_sum: m.normal,
+        }
     }
 }
 

@@ -1598,16 +1598,7 @@ impl<'a> CvJob<'a> {
 
 /// The per-pixel moments of a film, as [`estimators::surrogate::surrogate_image`] takes them.
 pub fn film_moments(film: &Film) -> Vec<PixelMoments> {
-    film.pixels
-        .iter()
-        .map(|p| PixelMoments {
-            sum: p.sum,
-            sum_sq: p.sum_sq,
-            albedo: p.albedo_sum,
-            normal: p.normal_sum,
-            count: p.count,
-        })
-        .collect()
+    film.pixels.iter().map(Pixel::moments).collect()
 }
 
 /// What a tile of a phase is rendered with, besides its rectangle and samples: the phase,
@@ -2348,14 +2339,7 @@ pub fn combine_phase_films(plain: &Film, controlled: &Film) -> (Film, Option<f64
     let mut out = plain.clone();
     out.rejected += controlled.rejected;
     for ((px, u), c) in out.pixels.iter_mut().zip(&u).zip(&c) {
-        let m = combine_phases(u, c, w);
-        *px = Pixel {
-            sum: m.sum,
-            sum_sq: m.sum_sq,
-            count: m.count,
-            albedo_sum: m.albedo,
-            normal_sum: m.normal,
-        };
+        *px = combine_phases(u, c, w).into();
     }
     (out, w)
 }
