@@ -31,9 +31,20 @@ impl PixelMoments {
             return [0.0; 3];
         }
         let n = self.count as f64;
+        self.squared_deviations()
+            .map(|d| (d / (n - 1.0)).max(0.0) / n)
+    }
+
+    /// Sum of the samples' squared deviations from their mean per radiance channel,
+    /// `Σx² − n·mean²` (rounding can take it slightly below 0; 0 with fewer than 2 samples).
+    pub fn squared_deviations(&self) -> [f64; 3] {
+        if self.count < 2 {
+            return [0.0; 3];
+        }
+        let n = self.count as f64;
         std::array::from_fn(|c| {
             let mean = self.sum[c] / n;
-            ((self.sum_sq[c] - n * mean * mean) / (n - 1.0)).max(0.0) / n
+            self.sum_sq[c] - n * mean * mean
         })
     }
 

@@ -68,14 +68,7 @@ impl Pixel {
     /// Sum of the samples' squared deviations from their mean per channel,
     /// `Σ x² − n·mean²` (rounding can take it slightly below 0; 0 with fewer than 2 samples).
     pub fn squared_deviations(&self) -> [f64; 3] {
-        if self.count < 2 {
-            return [0.0; 3];
-        }
-        let n = self.count as f64;
-        std::array::from_fn(|c| {
-            let mean = self.sum[c] / n;
-            self.sum_sq[c] - n * mean * mean
-        })
+        self.moments().squared_deviations()
     }
 
     /// Variance of the mean per channel (0 with fewer than 2 samples;
