@@ -43,8 +43,9 @@
 //! relMSE (DESIGN §6) among weights shared by all pixels. One weight from the whole image's
 //! sums is nearly independent of any pixel's samples, so the bias that per-pixel weights from
 //! the same samples carry ([`rerender_image_cross`]) is negligible (`render`'s `cv_unbiased`
-//! tests); per-block weights (16×16 pixels) gained 1–3 % more on the test scenes and were
-//! not kept.
+//! tests); per-block weights (blocks of 8, 16 and 64 pixels) gained 0–4 % more on the test
+//! scenes and were not kept. [`combine_phase_images`] is the one combination the renderer's
+//! in-process driver and the farm's assembly both call.
 
 use nalgebra::{DMatrix, DVector};
 
@@ -389,7 +390,7 @@ pub fn combine_phases(
     controlled: &PixelMoments,
     w: Option<f64>,
 ) -> PixelMoments {
-    let Some(w) = w.filter(|_| plain.count >= 2 && controlled.count >= 2) else {
+    let Some(w) = pixel_weight(plain, controlled, w) else {
         return plain.merged(controlled);
     };
     let (nu, nc) = (plain.count as f64, controlled.count as f64);
@@ -407,6 +408,38 @@ pub fn combine_phases(
         out.sum_sq[c] = n * mean * mean + var * n * (n - 1.0);
     }
     out
+}
+
+/// The weight [`combine_phases`] gives this pixel's uncontrolled mean: `w` when both sets
+/// have at least 2 samples, else `None` (the plain merge).
+fn pixel_weight(plain: &PixelMoments, controlled: &PixelMoments, w: Option<f64>) -> Option<f64> {
+    w.filter(|_| plain.count >= 2 && controlled.count >= 2)
+}
+
+/// The factor with which the controlled samples' values enter [`combine_phases`]'s mean,
+/// relative to the plain average of all the pixel's samples: `(1 − w)·n/n_c` where it weighs,
+/// else 1. (A per-pixel sum over the controlled samples divided by `n`, times this, is that
+/// sum's part of the combined mean.)
+pub fn controlled_scale(plain: &PixelMoments, controlled: &PixelMoments, w: Option<f64>) -> f64 {
+    match pixel_weight(plain, controlled, w) {
+        Some(w) => (1.0 - w) * (plain.count + controlled.count) as f64 / controlled.count as f64,
+        None => 1.0,
+    }
+}
+
+/// Two whole images' sums combined: [`phase_weight`] over all pixels (in order), then
+/// [`combine_phases`] pixel by pixel; and the weight. The images have the same size.
+pub fn combine_phase_images(
+    plain: &[PixelMoments],
+    controlled: &[PixelMoments],
+) -> (Vec<PixelMoments>, Option<f64>) {
+    let w = phase_weight(plain.iter().zip(controlled));
+    let combined = plain
+        .iter()
+        .zip(controlled)
+        .map(|(u, c)| combine_phases(u, c, w))
+        .collect();
+    (combined, w)
 }
 
 #[cfg(test)]
@@ -493,6 +526,13 @@ mod tests {
         }
         // Green: the uncontrolled set is constant (no variance), so is its share.
         assert!((v[1] - 0.75 * 0.75 * vc[1]).abs() < 1e-12);
+        // The controlled sum, divided by the count and scaled, is its part of the mean.
+        let k = controlled_scale(&u, &c, Some(w));
+        for ch in 0..3 {
+            let part = (1.0 - w) * c.sum[ch] / 4.0;
+            assert!((c.sum[ch] / 7.0 * k - part).abs() < 1e-12, "channel {ch}");
+        }
+        assert_eq!(controlled_scale(&u, &c, None), 1.0);
     }
 
     #[test]

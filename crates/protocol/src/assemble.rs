@@ -13,7 +13,7 @@
 //! ([`estimators::composite::phase_weight`], [`estimators::composite::combine_phases`]), as
 //! `render::integrator::cv::combine_phase_films` combines a local render's films.
 
-use estimators::composite::{combine_phases, phase_weight};
+use estimators::composite::combine_phase_images;
 
 use crate::frame::{PixelRecord, TileResult};
 
@@ -45,7 +45,7 @@ pub struct AssembledImage {
     /// Samples per pixel.
     pub spp: Vec<u64>,
     /// Weight of the samples added with [`ImageAccumulator::add`] when blocks were added with
-    /// [`ImageAccumulator::add_controlled`] ([`phase_weight`]); `None` when all were merged
+    /// [`ImageAccumulator::add_controlled`] ([`estimators::composite::phase_weight`]); `None` when all were merged
     /// plainly.
     pub uncontrolled_weight: Option<f64>,
 }
@@ -102,14 +102,7 @@ impl ImageAccumulator {
         let pixels = match &self.controlled {
             None => &self.pixels,
             Some(c) => {
-                let w = phase_weight(self.pixels.iter().zip(c));
-                weight = w;
-                combined = self
-                    .pixels
-                    .iter()
-                    .zip(c)
-                    .map(|(u, c)| combine_phases(u, c, w))
-                    .collect::<Vec<_>>();
+                (combined, weight) = combine_phase_images(&self.pixels, c);
                 &combined
             }
         };

@@ -92,7 +92,7 @@ use std::time::Instant;
 use estimators::cell::{
     CellAccumulator, ColorMode, ComponentLayout, CvSample, Technique, training_weight,
 };
-use estimators::composite::{combine_phases, phase_weight};
+use estimators::composite::{combine_phase_images, controlled_scale};
 use estimators::perlight::MeanContributionAccumulator;
 use estimators::solve::{CellCoefficients, CellHalves, SolvePolicy, SolveStatus};
 pub use estimators::spec::{
@@ -2285,18 +2285,14 @@ pub fn render_estimator_image(
         if traces_as_path(&job.ctx, PhaseKind::Apply, Some(&table)) {
             film.merge(&rfilm);
         } else {
-            let plain = std::mem::replace(&mut film, Film::new(0, 0));
+            let plain = film;
             let w;
             (film, w) = combine_phase_films(&plain, &rfilm);
             report.uncontrolled_weight = w;
             // The render phase's share of each pixel, for the CV layer.
-            if let Some(w) = w {
-                for ((s, u), c) in cv_sum.iter_mut().zip(&plain.pixels).zip(&rfilm.pixels) {
-                    if u.count >= 2 && c.count >= 2 {
-                        let k = (1.0 - w) * (u.count + c.count) as f64 / c.count as f64;
-                        *s = s.map(|v| v * k);
-                    }
-                }
+            for ((s, u), c) in cv_sum.iter_mut().zip(&plain.pixels).zip(&rfilm.pixels) {
+                let k = controlled_scale(&u.moments(), &c.moments(), w);
+                *s = s.map(|v| v * k);
             }
         }
     }
@@ -2331,16 +2327,15 @@ pub fn render_estimator_image(
 /// The image of a phased job: `plain`'s samples (surrogate and training, `path`'s) and
 /// `controlled`'s (the render phase with the CV) combined with one image-wide
 /// inverse-variance weight ([`estimators::composite::phase_weight`],
-/// [`estimators::composite::combine_phases`]), as the farm's assembly combines them, and
-/// the weight of `plain`'s samples (`None`: merged plainly). Both films cover the image.
+/// [`estimators::composite::combine_phase_images`]), as the farm's assembly combines them,
+/// and the weight of `plain`'s samples (`None`: merged plainly). Both films cover the image.
 pub fn combine_phase_films(plain: &Film, controlled: &Film) -> (Film, Option<f64>) {
-    let (u, c) = (film_moments(plain), film_moments(controlled));
-    let w = phase_weight(u.iter().zip(&c));
-    let mut out = plain.clone();
-    out.rejected += controlled.rejected;
-    for ((px, u), c) in out.pixels.iter_mut().zip(&u).zip(&c) {
-        *px = combine_phases(u, c, w).into();
-    }
+    let (combined, w) = combine_phase_images(&film_moments(plain), &film_moments(controlled));
+    let out = Film {
+        pixels: combined.into_iter().map(Pixel::from).collect(),
+        rejected: plain.rejected + controlled.rejected,
+        ..*plain
+    };
     (out, w)
 }
 
