@@ -79,6 +79,15 @@ pub struct SolvePolicy {
     /// Whether a table's keys are cells or the halves of cells ([`CellHalves`]). Used by
     /// [`crate::table::AccumulatorTable::solve`]; [`solve`] itself ignores it.
     pub halves: CellHalves,
+    /// Subdivisions of the grid the cells come from: with [`CellHalves::CrossFitted`] and
+    /// `levels > 0`, the cells (`key / 2`) are the finest of a hierarchy whose parent of
+    /// cell `c·bins + b` is `(c / 8)·bins + b` ([`crate::spec::CELL_CHILDREN`]), and every
+    /// cell keeps, of its own fit and the fit its parent kept, the one that removes the
+    /// most variance out of sample ([`crate::table::AccumulatorTable::solve`]). Used by the
+    /// table solve; [`solve`] itself ignores it.
+    pub levels: u32,
+    /// Table keys per grid cell (normal bins) of the hierarchy of [`Self::levels`].
+    pub bins: u32,
     /// Largest accepted condition estimate of the scaled, regularised system.
     pub max_condition: f64,
     /// Smallest predicted image gain of a table's fits ([`crate::table::predicted_image_gain`])
@@ -103,6 +112,8 @@ impl Default for SolvePolicy {
             min_partition_samples: 1,
             min_group_samples: 1,
             halves: CellHalves::None,
+            levels: 0,
+            bins: 1,
             max_condition: 1e12,
             min_image_gain: f64::NEG_INFINITY,
             min_fit_gain: f64::NEG_INFINITY,

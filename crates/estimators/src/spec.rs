@@ -229,6 +229,7 @@ pub const CMS_GROUP_SAMPLES: u64 = 16;
 /// | `training_spp` | u32 | 16 | samples per pixel of the training phase (kept in the image, weighed against the render phase's by their variance: [`crate::composite::phase_weight`]) |
 /// | `surrogate_spp` | u32 | 1 | samples per pixel of the surrogate image (only with `relative`; kept in the image) |
 /// | `grid_resolution` | `[nx, ny, nz]` \| null | null | cells per axis over the scene bounds; null = adaptive (≈ 16×16 pixels per cell) |
+/// | `grid_levels` | u32 \| null | null | each grid cell is subdivided this many times (2×2×2 children per level, at most [`MAX_GRID_LEVELS`]; `9^levels` indices per grid cell count toward the 2^20 limit) where the camera's rays hit glossy surfaces (other vertices keep the undivided cells: `render::integrator::cv::Grid`); every cell keeps the fit of its own samples or of an ancestor's, whichever removes the most variance out of sample ([`crate::solve::SolvePolicy::levels`]). 0 = one level (the cells of `grid_resolution`). null = [`CMS_GRID_LEVELS`], fewer where a given `grid_resolution` would exceed the limit. Chosen by equal-spp measurements (`docs/bench/README.md`) |
 /// | `max_light_components` | u32 | 1024 | more emitters than this are clustered by spatial proximity |
 /// | `ridge` | f64 \| null | null | relative Tikhonov regularisation of each cell system: `A + ridge·diag(A)` shrinks `α` toward the base estimator (`path` with the default `base`); 0.5 scales an uncorrelated coefficient by 2/3. null = by the job's sampler ([`PhasedEstimator::for_sampler`]): **0.5 with the Sobol sampler** ([`RIDGE_STRATIFIED`]: the fits minimise the variance of independent samples, which overstates the per-pixel stratified `path`'s, so they are shrunk toward it; 1 shrank colour-lamp's fits too far, 1.42× → 1.53× at 0.5, and below 0.5 many-lights' sparsely sampled lights lose), **0.1 with the independent one** ([`RIDGE_INDEPENDENT`]: there the fits' objective is the estimator's variance, and less shrinking gains 3–10 % at equal spp on colour-lamp, `manylights-4` and veach-mis d2). Chosen by equal-spp measurements (`docs/bench/README.md`) |
 /// | `min_samples` | u64 | 16 | cells with fewer training samples fall back to the plain estimator |
@@ -250,6 +251,9 @@ pub struct CmsOptions {
     pub surrogate_spp: u32,
     /// Grid cells per axis; `None` = adaptive.
     pub grid_resolution: Option<[u32; 3]>,
+    /// Subdivisions of each grid cell, fitted hierarchically; `None` = by the grid
+    /// ([`PhasedEstimator::grid_levels`]).
+    pub grid_levels: Option<u32>,
     /// Clustering threshold for emitters.
     pub max_light_components: u32,
     /// Relative ridge of the cell solves; `None` = by the sampler
@@ -278,6 +282,7 @@ impl Default for CmsOptions {
             training_spp: 16,
             surrogate_spp: 1,
             grid_resolution: None,
+            grid_levels: None,
             max_light_components: 1024,
             ridge: None,
             min_samples: 16,
@@ -517,15 +522,38 @@ impl PhasedEstimator {
                 "must be finite (or null to always keep the fits)",
             ));
         }
+        let levels = self.grid_levels();
+        if levels > MAX_GRID_LEVELS {
+            return Err(("grid_levels", "at most 4 subdivisions"));
+        }
         if let Some(g) = grid {
             if g.contains(&0) {
                 return Err(("grid_resolution", "every axis needs at least one cell"));
             }
-            if g.iter().map(|&r| u64::from(r)).product::<u64>() > MAX_GRID_CELLS {
-                return Err(("grid_resolution", "more than 2^20 cells"));
+            if finest_grid_cells(g, levels) > MAX_GRID_CELLS {
+                return Err((
+                    "grid_resolution",
+                    "more than 2^20 cells (after grid_levels subdivisions)",
+                ));
             }
         }
         Ok(())
+    }
+
+    /// Subdivisions of the grid cells: `cms`'s `grid_levels`, by default [`CMS_GRID_LEVELS`]
+    /// or as many as a given `grid_resolution` allows within [`MAX_GRID_CELLS`]; 0 for the
+    /// others.
+    pub fn grid_levels(&self) -> u32 {
+        match self {
+            Self::Cms(o) => o.grid_levels.unwrap_or_else(|| match o.grid_resolution {
+                None => CMS_GRID_LEVELS,
+                Some(g) => (0..=CMS_GRID_LEVELS)
+                    .rev()
+                    .find(|&l| finest_grid_cells(g, l) <= MAX_GRID_CELLS)
+                    .unwrap_or(0),
+            }),
+            Self::PerLightCv(_) | Self::OptimalMis(_) => 0,
+        }
     }
 
     /// Solve policy of the cell systems (`cms`'s `ridge` `None` read as the Sobol sampler's
@@ -541,6 +569,8 @@ impl PhasedEstimator {
                 // Training records each cell's halves apart; a cell keeps its fits only
                 // where they remove variance out of sample.
                 halves: crate::solve::CellHalves::CrossFitted,
+                levels: self.grid_levels(),
+                bins: NORMAL_BINS,
                 ..crate::solve::SolvePolicy::default()
             },
             Self::OptimalMis(o) => crate::solve::SolvePolicy {
@@ -557,8 +587,31 @@ impl PhasedEstimator {
     }
 }
 
-/// Most grid cells a job may ask for.
+/// Most grid cells a job may ask for (the finest cells, after `grid_levels` subdivisions).
 pub const MAX_GRID_CELLS: u64 = 1 << 20;
+
+/// Cell indices of a grid of `res` cells subdivided `levels` times, [`CELL_CHILDREN`]
+/// children each (saturating).
+pub fn finest_grid_cells(res: [u32; 3], levels: u32) -> u64 {
+    res.iter()
+        .fold(1u64, |n, &r| n.saturating_mul(u64::from(r)))
+        .saturating_mul(CELL_CHILDREN.saturating_pow(levels))
+}
+
+/// Most subdivisions of a grid cell (`cms`'s `grid_levels`).
+pub const MAX_GRID_LEVELS: u32 = 4;
+
+/// Children of a subdivided grid cell: its 2×2×2 octants, where the camera's hits are
+/// recorded, and one child for the deeper vertices; the parent of cell index `i` is
+/// `i / CELL_CHILDREN` (`render::integrator::cv::Grid`).
+pub const CELL_CHILDREN: u64 = 9;
+
+/// Table keys per grid cell: the renderer splits every grid cell by the dominant axis and
+/// sign of the shading normal, key = `cell · NORMAL_BINS + bin`.
+pub const NORMAL_BINS: u32 = 6;
+
+/// Default `grid_levels` of `cms`, chosen by equal-spp measurements (`docs/bench/README.md`).
+pub const CMS_GRID_LEVELS: u32 = 2;
 
 #[cfg(test)]
 mod tests {
@@ -686,5 +739,38 @@ mod tests {
         });
         assert!(off.validate().is_ok());
         assert!(OcvOptions::default().validate().is_ok());
+    }
+
+    #[test]
+    fn grid_levels_count_toward_the_cell_limit_and_default_to_what_fits() {
+        let cms = |grid_resolution, grid_levels| {
+            PhasedEstimator::Cms(CmsOptions {
+                grid_resolution,
+                grid_levels,
+                ..CmsOptions::default()
+            })
+        };
+        assert_eq!(cms(None, None).grid_levels(), CMS_GRID_LEVELS);
+        assert_eq!(cms(None, None).solve_policy().levels, CMS_GRID_LEVELS);
+        assert_eq!(cms(None, None).solve_policy().bins, NORMAL_BINS);
+        assert_eq!(cms(Some([8, 8, 8]), None).grid_levels(), 2);
+        // 64³ · 9 > 2^20: no subdivision by default, an error when asked for.
+        assert_eq!(cms(Some([64, 64, 64]), None).grid_levels(), 0);
+        assert!(cms(Some([64, 64, 64]), None).validate().is_ok());
+        assert_eq!(
+            cms(Some([64, 64, 64]), Some(1)).validate().unwrap_err().0,
+            "grid_resolution"
+        );
+        assert_eq!(
+            cms(None, Some(MAX_GRID_LEVELS + 1))
+                .validate()
+                .unwrap_err()
+                .0,
+            "grid_levels"
+        );
+        assert_eq!(finest_grid_cells([u32::MAX; 3], 4), u64::MAX);
+        // The others never subdivide.
+        let per_light = PhasedEstimator::PerLightCv(PerLightCvOptions::default());
+        assert_eq!(per_light.grid_levels(), 0);
     }
 }

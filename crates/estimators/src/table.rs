@@ -19,6 +19,7 @@
 //!   canonical task order gives bitwise-reproducible sums.
 //! - Decoding validates everything ([`CellError`]) and never panics on arbitrary bytes.
 
+use std::borrow::Cow;
 use std::collections::BTreeMap;
 
 use crate::cell::{CellAccumulator, CellError, Reader};
@@ -248,36 +249,224 @@ fn pair_halves(t: &BTreeMap<u64, CellAccumulator>) -> BTreeMap<u64, (CellAccumul
     out
 }
 
-/// The fallback of a cell whose fits do not remove variance out of sample
-/// ([`CellHalves::CrossFitted`]): each half is fitted alone (same policy, `min_samples`
-/// halved) and its coefficients applied to the other half's samples; `None` when the sum of
-/// the two [`variance_reduction`]s is positive, when `co` fell back already, or when the
-/// cell lacks a half (nothing to check against: a cell with samples of one parity only).
-///
-/// The halves' fits have half the samples, so they overfit more than the cell's own fit: the
-/// check is conservative, as a held-out estimate of a fit on fewer samples is.
-fn held_out_loss(
-    halves: &Halves<'_>,
-    co: &CellCoefficients,
+/// `f` of every value of `cells`, in key order, on up to `threads` threads (contiguous
+/// chunks: the result does not depend on `threads`).
+fn par_map<T: Sync, R: Send>(
+    cells: &BTreeMap<u64, T>,
+    threads: usize,
+    f: impl Fn(&T) -> R + Sync,
+) -> Vec<R> {
+    let items: Vec<&T> = cells.values().collect();
+    let chunk = items.len().div_ceil(threads.max(1)).max(1);
+    std::thread::scope(|s| {
+        let handles: Vec<_> = items
+            .chunks(chunk)
+            .map(|c| {
+                let f = &f;
+                s.spawn(move || c.iter().map(|v| f(v)).collect::<Vec<_>>())
+            })
+            .collect();
+        handles
+            .into_iter()
+            .flat_map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))
+            .collect()
+    })
+}
+
+/// The cells' undivided ancestors ([`SolvePolicy::levels`] up): each one's sums (its
+/// members added in key order) and its member cells' keys.
+fn undivided(
+    cells: impl Iterator<Item = (u64, CellAccumulator)>,
     policy: &SolvePolicy,
-) -> Option<CellCoefficients> {
-    let (Some(even), Some(odd)) = *halves else {
-        return None;
-    };
-    if co.is_fallback() {
-        return None;
+) -> (BTreeMap<u64, CellAccumulator>, BTreeMap<u64, Vec<u64>>) {
+    let bins = u64::from(policy.bins.max(1));
+    let span = crate::spec::CELL_CHILDREN.pow(policy.levels.min(crate::spec::MAX_GRID_LEVELS));
+    let (mut sums, mut members) = (BTreeMap::new(), BTreeMap::<u64, Vec<u64>>::new());
+    for (k, a) in cells {
+        let up = (k / bins / span) * bins + k % bins;
+        match sums.get_mut(&up) {
+            // One job's cells: their layouts agree (else the cell is left out of the fit).
+            Some(m) => {
+                if CellAccumulator::merge(m, &a).is_ok() {
+                    members.entry(up).or_default().push(k);
+                }
+            }
+            None => {
+                sums.insert(up, a);
+                members.insert(up, vec![k]);
+            }
+        }
+    }
+    (sums, members)
+}
+
+/// A node of the cell hierarchy ([`SolvePolicy::levels`]): its samples and their halves.
+struct Node<'a> {
+    merged: Cow<'a, CellAccumulator>,
+    even: Option<Cow<'a, CellAccumulator>>,
+    odd: Option<Cow<'a, CellAccumulator>>,
+}
+
+impl Node<'_> {
+    /// Adds a child's sums (keys in order, so the sums are reproducible). A layout
+    /// mismatch (not within one job) drops the child's half, as [`pair_halves`] does.
+    fn absorb(&mut self, child: &Node<'_>) {
+        let _ = self.merged.to_mut().merge(&child.merged);
+        for (mine, theirs) in [(&mut self.even, &child.even), (&mut self.odd, &child.odd)] {
+            if let Some(t) = theirs {
+                match mine {
+                    Some(m) => {
+                        let _ = m.to_mut().merge(t);
+                    }
+                    None => *mine = Some(Cow::Owned(t.as_ref().clone())),
+                }
+            }
+        }
+    }
+}
+
+/// A node's fit and, when it has both halves and a fit, each half's fit (for the
+/// held-out checks of itself and its descendants).
+struct Fit {
+    full: CellCoefficients,
+    halves: Option<(CellCoefficients, CellCoefficients)>,
+}
+
+impl Fit {
+    /// The variance the halves' fits remove from the other half of `node` (held out);
+    /// `None` when either side lacks them.
+    fn held_out(&self, node: &Node<'_>) -> Option<f64> {
+        let (fit_even, fit_odd) = self.halves.as_ref()?;
+        let (even, odd) = (node.even.as_deref()?, node.odd.as_deref()?);
+        Some(variance_reduction(odd, fit_even) + variance_reduction(even, fit_odd))
+    }
+}
+
+/// Solves the cells of a cross-fitted table ([`CellHalves::CrossFitted`]) over their
+/// hierarchy ([`SolvePolicy::levels`]; 0: the cells alone).
+///
+/// Every node (cell or ancestor) is fitted on its samples and on each half. From the
+/// coarsest level down, a node keeps, of its own fit and the fit its parent kept, the one
+/// whose half fits remove the most variance from the node's other half (held out; cross-
+/// fitted: each half's fit on the other half, as with one level), and none when neither removes any
+/// ([`FallbackReason::HeldOutLoss`]). A node without both halves cannot be checked: it
+/// keeps its own fit, else its parent's. So a small cell whose samples support a fit of its
+/// own gets it, and one whose own fit follows noise (few samples, many lights) gets the
+/// shared fit of a larger region [Hua §4.2] where that still removes variance. The
+/// coefficients are the kept fit's, on all of its node's samples.
+///
+/// The halves' fits have half the samples, so they overfit more than the node's own fit: the
+/// check is conservative, as a held-out estimate of a fit on fewer samples is, and equally
+/// so for a node's own fit and its parent's (each half fit has half of its node's samples).
+fn solve_hierarchy(
+    cells: &BTreeMap<u64, (CellAccumulator, Halves<'_>)>,
+    policy: &SolvePolicy,
+    threads: usize,
+) -> SolvedTable {
+    let bins = u64::from(policy.bins.max(1));
+    let parent = |id: u64| (id / bins / crate::spec::CELL_CHILDREN) * bins + id % bins;
+    let mut levels: Vec<BTreeMap<u64, Node<'_>>> = vec![
+        cells
+            .iter()
+            .map(|(&k, (a, (even, odd)))| {
+                let node = Node {
+                    merged: Cow::Borrowed(a),
+                    even: even.map(Cow::Borrowed),
+                    odd: odd.map(Cow::Borrowed),
+                };
+                (k, node)
+            })
+            .collect(),
+    ];
+    for _ in 0..policy.levels.min(crate::spec::MAX_GRID_LEVELS) {
+        let mut up: BTreeMap<u64, Node<'_>> = BTreeMap::new();
+        for (&k, child) in levels.last().into_iter().flatten() {
+            match up.get_mut(&parent(k)) {
+                Some(node) => node.absorb(child),
+                None => {
+                    let node = Node {
+                        merged: Cow::Owned(child.merged.as_ref().clone()),
+                        even: child.even.as_deref().map(|a| Cow::Owned(a.clone())),
+                        odd: child.odd.as_deref().map(|a| Cow::Owned(a.clone())),
+                    };
+                    up.insert(parent(k), node);
+                }
+            }
+        }
+        levels.push(up);
     }
     let half = policy.for_half();
-    let (fit_even, fit_odd) = (solve(even, &half), solve(odd, &half));
-    let held_out = variance_reduction(odd, &fit_even) + variance_reduction(even, &fit_odd);
-    (held_out <= 0.0).then(|| {
-        CellCoefficients::fallen_back(
-            co.layout(),
-            co.color(),
-            *co.diagnostics(),
-            FallbackReason::HeldOutLoss,
-        )
-    })
+    // Kept fits by node key, level by level from the top: `None` = no fit kept.
+    let mut kept: BTreeMap<u64, Option<std::sync::Arc<Fit>>> = BTreeMap::new();
+    let mut out = SolvedTable::default();
+    for (depth, nodes) in levels.iter().enumerate().rev() {
+        let above = &kept;
+        let choices = par_map(nodes, threads, |node| {
+            let full = solve(&node.merged, policy);
+            let halves = match (&node.even, &node.odd) {
+                (Some(e), Some(o)) if !full.is_fallback() => {
+                    Some((solve(e, &half), solve(o, &half)))
+                }
+                _ => None,
+            };
+            Fit { full, halves }
+        });
+        let mut next = BTreeMap::new();
+        for ((&k, node), own) in nodes.iter().zip(choices) {
+            let inherited = above.get(&parent(k)).cloned().flatten();
+            let own_score = own.held_out(node);
+            let inherited_score = inherited.as_ref().and_then(|f| f.held_out(node));
+            let checked = node.even.is_some() && node.odd.is_some();
+            let choice = if checked {
+                // Both candidates are judged on this node's halves; ties keep the node's own.
+                let own_ok = own_score.filter(|&v| v > 0.0);
+                let up_ok = inherited_score.filter(|&v| v > 0.0);
+                match (own_ok, up_ok) {
+                    (Some(a), Some(b)) if b > a => Keep::Inherited,
+                    (Some(_), _) => Keep::Own,
+                    (None, Some(_)) => Keep::Inherited,
+                    (None, None) => Keep::Neither,
+                }
+            } else if !own.full.is_fallback() {
+                Keep::Own
+            } else if inherited.is_some() {
+                Keep::Inherited
+            } else {
+                Keep::Neither
+            };
+            if depth == 0 {
+                let co = match choice {
+                    Keep::Own => own.full,
+                    Keep::Inherited => inherited.map(|f| f.full.clone()).unwrap_or(own.full),
+                    Keep::Neither if own.full.is_fallback() => own.full,
+                    Keep::Neither => CellCoefficients::fallen_back(
+                        own.full.layout(),
+                        own.full.color(),
+                        *own.full.diagnostics(),
+                        FallbackReason::HeldOutLoss,
+                    ),
+                };
+                out.rejected += node.merged.rejected();
+                out.coefficients.insert(k, co);
+            } else {
+                let fit = match choice {
+                    Keep::Own => Some(std::sync::Arc::new(own)),
+                    Keep::Inherited => inherited,
+                    Keep::Neither => None,
+                };
+                next.insert(k, fit);
+            }
+        }
+        kept = next;
+    }
+    out
+}
+
+/// Which fit a node of the hierarchy keeps ([`solve_hierarchy`]).
+enum Keep {
+    Own,
+    Inherited,
+    Neither,
 }
 
 /// A merged accumulator table of either record kind: what a training phase produces and
@@ -540,49 +729,38 @@ impl AccumulatorTable {
             threads: usize,
             f: impl Fn(&T) -> (CellCoefficients, u64) + Sync,
         ) -> SolvedTable {
-            let items: Vec<(&u64, &T)> = cells.iter().collect();
-            let chunk = items.len().div_ceil(threads.max(1)).max(1);
-            let parts: Vec<Vec<(u64, CellCoefficients, u64)>> = std::thread::scope(|s| {
-                let handles: Vec<_> = items
-                    .chunks(chunk)
-                    .map(|c| {
-                        let f = &f;
-                        s.spawn(move || {
-                            c.iter()
-                                .map(|(k, v)| {
-                                    let (co, r) = f(v);
-                                    (**k, co, r)
-                                })
-                                .collect::<Vec<_>>()
-                        })
-                    })
-                    .collect();
-                handles
-                    .into_iter()
-                    .map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))
-                    .collect()
-            });
             let mut out = SolvedTable::default();
-            for (k, co, r) in parts.into_iter().flatten() {
+            for (k, (co, r)) in cells.keys().zip(par_map(cells, threads, f)) {
                 out.rejected += r;
-                out.coefficients.insert(k, co);
+                out.coefficients.insert(*k, co);
             }
             out
         }
         let (mut out, sums, image) = match self {
-            Self::Moments(t, image) if policy.halves != CellHalves::None => {
+            Self::Moments(t, image) if policy.halves == CellHalves::CrossFitted => {
                 let cells = pair_halves(t);
-                let cross = policy.halves == CellHalves::CrossFitted;
-                let out = par(&cells, threads, |(a, halves)| {
-                    let mut co = solve(a, policy);
-                    if cross && let Some(loss) = held_out_loss(halves, &co, policy) {
-                        co = loss;
-                    }
-                    (co, a.rejected())
-                });
+                let out = solve_hierarchy(&cells, policy, threads);
                 let merged: BTreeMap<u64, CellAccumulator> =
                     cells.into_iter().map(|(k, (a, _))| (k, a)).collect();
                 let sums = FitSums::of(&merged, &out.coefficients);
+                (out, Some(sums), *image)
+            }
+            Self::Moments(t, image) if policy.halves == CellHalves::Merged => {
+                // Without a held-out check to choose a level by, the cells of a hierarchy
+                // take their undivided ancestor's fit.
+                let (merged, members) =
+                    undivided(pair_halves(t).into_iter().map(|(k, (a, _))| (k, a)), policy);
+                let coarse = par(&merged, threads, |a| (solve(a, policy), a.rejected()));
+                let sums = FitSums::of(&merged, &coarse.coefficients);
+                let mut out = SolvedTable {
+                    rejected: coarse.rejected,
+                    ..SolvedTable::default()
+                };
+                for (ancestor, co) in &coarse.coefficients {
+                    for &k in &members[ancestor] {
+                        out.coefficients.insert(k, co.clone());
+                    }
+                }
                 (out, Some(sums), *image)
             }
             Self::Moments(t, image) => {

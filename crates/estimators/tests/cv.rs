@@ -1634,3 +1634,101 @@ fn grouping_keeps_many_thinly_sampled_partitions_from_fitting_noise() {
         "grouped {grouped} plain {plain_var}"
     );
 }
+
+/// A table of one undivided cell's nine children (ids `0..9`, [`CellHalves`] keys `2c`,
+/// `2c + 1`) from `halves(child) = (even, odd)` samples, and each child's merged sums.
+fn family_table(
+    p: u32,
+    halves: impl Fn(u64) -> (Vec<Recorded>, Vec<Recorded>),
+) -> (AccumulatorTable, Vec<CellAccumulator>) {
+    let mut t = BTreeMap::new();
+    let mut wholes = Vec::new();
+    for c in 0..9u64 {
+        let (even, odd) = halves(c);
+        let (e, o) = (
+            accumulate(&even, p, 1, ColorMode::Rgb),
+            accumulate(&odd, p, 1, ColorMode::Rgb),
+        );
+        let mut whole = e.clone();
+        whole.merge(&o).unwrap();
+        t.insert(2 * c, e);
+        t.insert(2 * c + 1, o);
+        wholes.push(whole);
+    }
+    (AccumulatorTable::Moments(t, None), wholes)
+}
+
+#[test]
+fn a_subdivided_cell_keeps_its_own_fit_or_its_parents_whichever_removes_more_held_out() {
+    let policy = SolvePolicy {
+        halves: CellHalves::CrossFitted,
+        levels: 1,
+        bins: 1,
+        ..grouped_policy(1)
+    };
+    let parent_of = |wholes: &[CellAccumulator]| {
+        let mut all = wholes[0].clone();
+        for w in &wholes[1..] {
+            all.merge(w).unwrap();
+        }
+        all
+    };
+    // One integrand over the whole cell and a handful of samples per child (12: below
+    // `min_samples`): no child can fit itself, and each takes the parent's fit.
+    let (thin, wholes) = family_table(2, |c| {
+        (
+            many_light_samples(2, 3, 1000 + 2 * c, 5.0),
+            many_light_samples(2, 3, 1001 + 2 * c, 5.0),
+        )
+    });
+    let solved = thin.solve(&policy, 2);
+    let parent = solve(&parent_of(&wholes), &policy);
+    assert_eq!(parent.diagnostics().status, SolveStatus::Solved);
+    for c in 0..9 {
+        assert_eq!(
+            solve(&wholes[c as usize], &policy).diagnostics().status,
+            SolveStatus::Fallback(FallbackReason::TooFewSamples)
+        );
+        assert_eq!(solved.coefficients[&c], parent, "child {c}");
+    }
+    // Without subdivision (levels 0) the same children fall back.
+    let flat = thin.solve(
+        &SolvePolicy {
+            levels: 0,
+            ..policy
+        },
+        2,
+    );
+    assert!(flat.coefficients.values().all(|co| co.is_fallback()));
+    // Without a held-out check (merged halves) every child takes its undivided cell's fit.
+    let merged = thin.solve(
+        &SolvePolicy {
+            halves: CellHalves::Merged,
+            ..policy
+        },
+        2,
+    );
+    assert!(merged.coefficients.values().all(|co| *co == parent));
+    // Children whose integrands differ (slopes 1…25) and are well sampled keep their own
+    // fits (unshrunk: with a ridge the parent's larger slope, shrunk, can fit a child's
+    // better than the child's own shrunk fit, and the held-out check then rightly takes it).
+    let policy = SolvePolicy {
+        ridge: 1e-6,
+        ..policy
+    };
+    let (rich, wholes) = family_table(2, |c| {
+        let slope = 1.0 + 3.0 * c as f64;
+        (
+            many_light_samples(2, 200, 2000 + 2 * c, slope),
+            many_light_samples(2, 200, 2001 + 2 * c, slope),
+        )
+    });
+    let solved = rich.solve(&policy, 2);
+    for c in 0..9u64 {
+        let own = solve(&wholes[c as usize], &policy);
+        assert_eq!(own.diagnostics().status, SolveStatus::Solved);
+        assert_eq!(solved.coefficients[&c], own, "child {c}");
+    }
+    // The choice does not depend on the thread count.
+    assert_eq!(rich.solve(&policy, 1), solved);
+}

@@ -15,7 +15,7 @@
 use std::collections::BTreeMap;
 
 use estimators::solve::{CellHalves, SolveStatus};
-use estimators::spec::{MAX_GRID_CELLS, PhasedEstimator};
+use estimators::spec::{MAX_GRID_CELLS, MAX_GRID_LEVELS, PhasedEstimator, finest_grid_cells};
 use estimators::surrogate::{encode_surrogate, surrogate_image};
 use estimators::table::{
     AccumulatorTable, KIND_CELL_ACCUMULATORS, KIND_MEAN_CONTRIBUTIONS, MergeRecord, SolvedTable,
@@ -27,7 +27,7 @@ use crate::job::ResolvedJob;
 
 /// Cells per grid cell: the renderer splits every grid cell by the dominant axis and sign of
 /// the shading normal (`render::integrator::cv::NORMAL_BINS`).
-pub const NORMAL_BINS: u64 = 6;
+pub const NORMAL_BINS: u64 = estimators::spec::NORMAL_BINS as u64;
 
 /// Why a training result (or a set of them) was rejected. The message names the problem.
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
@@ -79,8 +79,8 @@ pub fn table_kind(est: &PhasedEstimator) -> u16 {
 }
 
 /// Exclusive bound of the cell keys of a job's training tables: pixels for `optimal_mis`
-/// (cells = pixels [Hua §7.4]), else grid cells × [`NORMAL_BINS`] (the grid's resolution
-/// when given, at most [`MAX_GRID_CELLS`]), twice that when the job's solve policy records
+/// (cells = pixels [Hua §7.4]), else grid cells × [`NORMAL_BINS`] (the grid's finest cells,
+/// after `grid_levels` subdivisions, when its resolution is given; at most [`MAX_GRID_CELLS`]), twice that when the job's solve policy records
 /// each cell's two halves apart (`cms`).
 pub fn cell_key_limit(est: &PhasedEstimator, job: &ResolvedJob) -> u64 {
     let grid = match est {
@@ -91,8 +91,9 @@ pub fn cell_key_limit(est: &PhasedEstimator, job: &ResolvedJob) -> u64 {
     let cells = match grid {
         None => u64::from(job.width) * u64::from(job.height),
         Some(g) => {
+            // The finest cells: `grid_levels` subdivisions of 8 children each.
             let cells = g.map_or(MAX_GRID_CELLS, |g| {
-                g.iter().map(|&r| u64::from(r)).product::<u64>()
+                finest_grid_cells(g, est.grid_levels().min(MAX_GRID_LEVELS))
             });
             cells.min(MAX_GRID_CELLS) * NORMAL_BINS
         }
@@ -484,6 +485,23 @@ mod tests {
             check_train_block(&est, &job(), &result(vec![block(&far)])),
             Err(CvError::KeyRange { .. })
         ));
+        // A given grid: its cells subdivided `grid_levels` times, 9 indices per level
+        // (`render::integrator::cv::Grid`), by default as many as fit the cell limit.
+        let grid = |g: [u32; 3], levels: Option<u32>| {
+            PhasedEstimator::Cms(estimators::spec::CmsOptions {
+                grid_resolution: Some(g),
+                grid_levels: levels,
+                ..Default::default()
+            })
+        };
+        let limit = |e: &PhasedEstimator| cell_key_limit(e, &job());
+        assert_eq!(limit(&grid([4, 4, 4], None)), 64 * 81 * NORMAL_BINS * 2);
+        assert_eq!(limit(&grid([4, 4, 4], Some(0))), 64 * NORMAL_BINS * 2);
+        assert_eq!(limit(&grid([4, 4, 4], Some(1))), 64 * 9 * NORMAL_BINS * 2);
+        assert_eq!(
+            limit(&grid([64, 64, 64], None)),
+            64 * 64 * 64 * NORMAL_BINS * 2
+        );
         // optimal_mis: cells are pixels.
         let om = PhasedEstimator::OptimalMis(Default::default());
         assert!(matches!(

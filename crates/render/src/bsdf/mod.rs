@@ -282,6 +282,17 @@ impl Bsdf {
         }
     }
 
+    /// Whether a lobe is glossy (a microfacet lobe: rough conductor, rough plastic's
+    /// coating): the light it reflects varies with direction at the scale of the lobe, and
+    /// so across a surface at the scale of a highlight.
+    #[inline]
+    pub fn is_glossy(&self) -> bool {
+        matches!(
+            self.kind,
+            BsdfKind::RoughConductor { .. } | BsdfKind::RoughPlastic { .. }
+        )
+    }
+
     /// Whether every lobe is a Dirac delta (no MIS with light sampling possible).
     #[inline]
     pub fn is_delta(&self) -> bool {

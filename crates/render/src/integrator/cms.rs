@@ -24,7 +24,7 @@
 //! `path`, as do the training samples.
 //!
 //! ```json
-//! { "kind": "cms", "relative": true, "color": "rgb", "training_spp": 16, "grid_resolution": [32, 32, 32], "ridge": 1.0, "base": "balance" }
+//! { "kind": "cms", "relative": true, "color": "rgb", "training_spp": 16, "grid_resolution": [16, 16, 16], "grid_levels": 2, "ridge": 1.0, "base": "balance" }
 //! ```
 
 pub use estimators::spec::CmsOptions;

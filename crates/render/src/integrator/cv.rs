@@ -96,7 +96,7 @@ use estimators::composite::{combine_phase_images, controlled_scale};
 use estimators::perlight::MeanContributionAccumulator;
 use estimators::solve::{CellCoefficients, CellHalves, SolvePolicy, SolveStatus};
 pub use estimators::spec::{
-    CvBase, CvColor, MAX_GRID_CELLS, PhaseSamples, PhasedEstimator, TRAIN_TILE,
+    CvBase, CvColor, MAX_GRID_CELLS, MAX_GRID_LEVELS, PhaseSamples, PhasedEstimator, TRAIN_TILE,
 };
 use estimators::surrogate::{PixelMoments, surrogate_image};
 use estimators::table::AccumulatorTable;
@@ -113,7 +113,7 @@ use crate::tile::{RenderOptions, RenderStats, TileRect};
 /// Each grid cell is split by the dominant axis and sign of the shading normal, so that
 /// surfaces of different orientation (floor vs. plate vs. wall: incompatible integrals
 /// [Hua §4.2]) never share coefficients.
-pub const NORMAL_BINS: u32 = 6;
+pub const NORMAL_BINS: u32 = estimators::spec::NORMAL_BINS;
 
 /// Dominant axis and sign of `n`: `0..6` (ties go to the lower axis; a NaN component loses
 /// every comparison).
@@ -158,8 +158,11 @@ pub struct EstimatorReport {
     pub training_spp: u32,
     /// Render-phase samples per pixel.
     pub render_spp: u32,
-    /// Grid resolution (`[0, 0, 0]` when cells are pixels or no CV).
+    /// Grid resolution of the finest cells (`[0, 0, 0]` when cells are pixels or no CV).
     pub grid_resolution: [u32; 3],
+    /// Subdivisions of the undivided grid cells fitted hierarchically (`grid_levels`).
+    #[serde(default)]
+    pub grid_levels: u32,
     /// Cells that received training data.
     pub cells: u64,
     /// Cells whose system was solved.
@@ -325,21 +328,45 @@ fn split_clusters(mut pts: Vec<(u32, Vec3)>, k: usize, out: &mut Vec<Vec<u32>>) 
     split_clusters(right, k - k1, out);
 }
 
-/// A regular grid over the scene bounds.
+/// A regular grid over the scene bounds, its cells subdivided `levels` times for the
+/// camera's hits on glossy surfaces (2×2×2 children per level, and a ninth child for the
+/// other vertices: [`estimators::spec::CELL_CHILDREN`]).
+///
+/// A cell index is `coarse · 9^levels + sub`, `coarse` the row-major index of the
+/// undivided cell and `sub` the path from it down to the finest cell in base-9 digits (the
+/// coarsest in the highest digit): octants `0..8` for a glossy camera hit
+/// ([`Self::cell`]), and for any other vertex digit 8 then zeros
+/// ([`Self::undivided_cell`]). So the parent of index `i` is `i / 9` at every level, and an
+/// undivided cell's index is its vertices' common ancestor: what lets the table solve fit
+/// each cell against its ancestors without knowing the grid
+/// ([`estimators::solve::SolvePolicy::levels`]). Glossy camera hits are subdivided because
+/// the image resolves them at pixel scale and their direct light varies at that scale (a
+/// highlight across a cell: veach-mis d2 1.26× → 1.75× `path` at equal spp with 2 levels);
+/// a diffuse surface's varies slowly, and a deeper vertex's reaches the image averaged over
+/// its path's footprint, so their cells stay few and well sampled (subdividing every
+/// vertex's cell cost colour-lamp d5 +40 % time for +2 % gain, many-lights +75 % for none;
+/// `docs/bench/README.md`). With `levels` 0 the index is the plain row-major one for all.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Grid {
     lo: Vec3,
     scale: Vec3,
+    /// Finest cells per axis (`coarse << levels`).
     res: [u32; 3],
+    /// Undivided cells per axis.
+    coarse: [u32; 3],
+    levels: u32,
     /// `res - 1` per axis (exact in `f32`: at most 2^20 cells).
     last: Vec3,
 }
 
 impl Grid {
-    /// A grid of `res` cells (or the adaptive default for an image of `width × height`).
+    /// A grid of `res` cells (or the adaptive default for an image of `width × height`),
+    /// each subdivided `levels` times; at most [`MAX_GRID_CELLS`] finest cells (the adaptive
+    /// default coarsens until they fit).
     pub fn new(
         bounds: (Vec3, Vec3),
         res: Option<[u32; 3]>,
+        levels: u32,
         width: u32,
         height: u32,
     ) -> Result<Self, RenderError> {
@@ -365,47 +392,92 @@ impl Grid {
             }
             None => {
                 let longest = ext.max_element();
-                let n = (width.max(height) / 16).clamp(8, 128) as f32;
-                let r = |e: f32| ((n * e / longest).ceil() as u32).max(1);
-                [r(ext.x), r(ext.y), r(ext.z)]
+                let mut n = (width.max(height) / 16).clamp(8, 128);
+                loop {
+                    let r = |e: f32| ((n as f32 * e / longest).ceil() as u32).max(1);
+                    let res = [r(ext.x), r(ext.y), r(ext.z)];
+                    if n == 1 || estimators::spec::finest_grid_cells(res, levels) <= MAX_GRID_CELLS
+                    {
+                        break res;
+                    }
+                    n -= 1;
+                }
             }
         };
-        let cells = res.iter().map(|&r| u64::from(r)).product::<u64>();
-        if cells > MAX_GRID_CELLS {
+        if levels > MAX_GRID_LEVELS
+            || estimators::spec::finest_grid_cells(res, levels) > MAX_GRID_CELLS
+        {
             return Err(RenderError::InvalidSetting {
                 field: "grid_resolution",
                 reason: "more than 2^20 cells",
             });
         }
+        let coarse = res;
+        let res = res.map(|r| r << levels);
         let resf = Vec3::new(res[0] as f32, res[1] as f32, res[2] as f32);
         Ok(Self {
             lo,
             scale: resf / ext,
             res,
+            coarse,
+            levels,
             last: resf - Vec3::ONE,
         })
     }
 
-    /// Cells per axis.
+    /// Finest cells per axis.
     pub fn resolution(&self) -> [u32; 3] {
         self.res
     }
 
-    /// Total cells.
-    pub fn cells(&self) -> usize {
-        self.res.iter().map(|&r| r as usize).product()
+    /// Subdivisions of the undivided cells.
+    pub fn levels(&self) -> u32 {
+        self.levels
     }
 
-    /// Index of the cell containing `p` (clamped to the grid).
+    /// Cell indices (`0..cells`): undivided cells × `9^levels`.
+    pub fn cells(&self) -> usize {
+        estimators::spec::finest_grid_cells(self.coarse, self.levels) as usize
+    }
+
+    /// Index of the undivided cell containing `p`, as a deeper vertex's cell (digit 8, then
+    /// zeros; the plain row-major index with `levels` 0).
+    #[inline]
+    pub fn undivided_cell(&self, p: Vec3) -> u32 {
+        let c = self.coords(p) >> self.levels;
+        let index = c.x + self.coarse[0] * (c.y + self.coarse[1] * c.z);
+        match self.levels {
+            0 => index,
+            l => (index * 9 + 8) * 9u32.pow(l - 1),
+        }
+    }
+
+    /// Index of the finest cell containing `p` (clamped to the grid), as a camera hit's
+    /// cell.
     #[inline]
     pub fn cell(&self, p: Vec3) -> u32 {
+        let c = self.coords(p);
+        if self.levels == 0 {
+            return c.x + self.res[0] * (c.y + self.res[1] * c.z);
+        }
+        let k = c >> self.levels;
+        let mut index = k.x + self.coarse[0] * (k.y + self.coarse[1] * k.z);
+        for l in (0..self.levels).rev() {
+            let b = (c >> l) & 1;
+            index = index * 9 + (b.x | (b.y << 1) | (b.z << 2));
+        }
+        index
+    }
+
+    /// The finest cell coordinates of `p` (clamped to the grid).
+    #[inline]
+    fn coords(&self, p: Vec3) -> glam::UVec3 {
         let q = (p - self.lo) * self.scale;
         // NaN and +∞ go to cell 0, negatives to 0, the rest is clamped to the last cell: in
         // the float domain, lane-parallel and without branches (the cast then sees only
         // `0..=res-1`).
         let q = Vec3::select(q.cmplt(Vec3::INFINITY), q, Vec3::ZERO);
-        let c = q.max(Vec3::ZERO).min(self.last).as_uvec3();
-        c.x + self.res[0] * (c.y + self.res[1] * c.z)
+        q.max(Vec3::ZERO).min(self.last).as_uvec3()
     }
 }
 
@@ -944,11 +1016,18 @@ impl Policy<'_, '_> {
         Some([nee, bsdf])
     }
 
+    /// The vertex's cell key: its finest grid cell where `fine` (a glossy camera hit), else
+    /// its undivided one ([`Grid`]); its pixel for `optimal_mis`'s camera hits.
     #[inline]
-    fn cell_of(&self, depth: u32, p: Vec3, ns: Vec3) -> Option<u32> {
+    fn cell_of(&self, fine: bool, depth: u32, p: Vec3, ns: Vec3) -> Option<u32> {
         match self.ctx.kind {
             Kind::Cms | Kind::PerLight => {
-                Some(self.ctx.grid.cell(p) * NORMAL_BINS + normal_bin(ns))
+                let cell = if fine {
+                    self.ctx.grid.cell(p)
+                } else {
+                    self.ctx.grid.undivided_cell(p)
+                };
+                Some(cell * NORMAL_BINS + normal_bin(ns))
             }
             Kind::OptimalMis => (depth == 0).then_some(self.pixel),
         }
@@ -967,10 +1046,10 @@ impl VertexObserver for Policy<'_, '_> {
     /// job's heuristic); the estimate stays unbiased, the choice depending only on the
     /// vertex's cell.
     #[inline]
-    fn controls(&mut self, depth: u32, p: Vec3, ns: Vec3) -> bool {
+    fn controls(&mut self, depth: u32, p: Vec3, ns: Vec3, glossy: bool) -> bool {
         let min_depth = self.ctx.min_depth;
         let cell = if depth == 0 || depth >= min_depth {
-            self.cell_of(depth, p, ns)
+            self.cell_of(depth == 0 && glossy, depth, p, ns)
         } else {
             None
         };
@@ -1266,7 +1345,13 @@ impl<'a> CvJob<'a> {
                 reason: "invalid component layout",
             }
         })?;
-        let grid = Grid::new(bounds, grid_res, scene.width, scene.height)?;
+        let grid = Grid::new(
+            bounds,
+            grid_res,
+            estimator.grid_levels(),
+            scene.width,
+            scene.height,
+        )?;
         let table_len = match kind {
             Kind::OptimalMis => scene.width as usize * scene.height as usize,
             _ => grid.cells() * NORMAL_BINS as usize,
@@ -2237,6 +2322,7 @@ pub fn render_estimator_image(
         training_tiles_stopped,
         training_tiles_dropped,
         grid_resolution: job.grid_resolution(),
+        grid_levels: job.ctx.grid.levels(),
         cells: solved.coefficients.len() as u64,
         lights: rs.lights.len() as u32,
         light_components: layout.partitions,
@@ -2550,6 +2636,7 @@ mod tests {
         let g = Grid::new(
             (Vec3::ZERO, Vec3::new(2.0, 1.0, 1.0)),
             Some([4, 2, 3]),
+            0,
             8,
             8,
         )
@@ -2560,19 +2647,64 @@ mod tests {
         assert_eq!(g.cell(Vec3::splat(-5.0)), 0);
         assert_eq!(g.cell(Vec3::splat(50.0)), 23);
         assert_eq!(g.cell(Vec3::splat(f32::NAN)), 0);
-        assert!(Grid::new((Vec3::ZERO, Vec3::ONE), Some([2048, 2048, 1]), 8, 8).is_err());
+        assert!(Grid::new((Vec3::ZERO, Vec3::ONE), Some([2048, 2048, 1]), 0, 8, 8).is_err());
         // Adaptive: longest axis max(w, h)/16 clamped to ≥ 8, others proportional.
-        let a = Grid::new((Vec3::ZERO, Vec3::new(4.0, 2.0, 0.0)), None, 256, 128).unwrap();
+        let a = Grid::new((Vec3::ZERO, Vec3::new(4.0, 2.0, 0.0)), None, 0, 256, 128).unwrap();
         assert_eq!(a.resolution(), [16, 8, 1]);
         // Empty bounds (no geometry) still give a valid one-cell-per-axis grid.
         let e = Grid::new(
             (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
             Some([1, 1, 1]),
+            0,
             4,
             4,
         )
         .unwrap();
         assert_eq!(e.cell(Vec3::ZERO), 0);
+    }
+
+    /// Subdivided cells: camera hits' indices are one per finest cell, deeper vertices' one
+    /// per undivided cell, all below `cells`, and dividing an index by 9 per level gives the
+    /// index of the containing cell of the grid with fewer subdivisions (the parent the
+    /// table solve fits against, [`estimators::solve::SolvePolicy::levels`]).
+    #[test]
+    fn subdivided_cells_are_numbered_so_that_the_parent_is_the_index_over_9() {
+        let bounds = (Vec3::new(-1.0, 0.0, 2.0), Vec3::new(3.0, 1.0, 4.5));
+        let grids: Vec<Grid> = (0..=2)
+            .map(|l| Grid::new(bounds, Some([3, 2, 5]), l, 8, 8).unwrap())
+            .collect();
+        assert_eq!(grids[2].resolution(), [12, 8, 20]);
+        assert_eq!(grids[2].cells(), 3 * 2 * 5 * 81);
+        let mut seen = std::collections::HashSet::new();
+        let res = grids[2].resolution();
+        for z in 0..res[2] {
+            for y in 0..res[1] {
+                for x in 0..res[0] {
+                    // The centre of finest cell (x, y, z).
+                    let t = (Vec3::new(x as f32, y as f32, z as f32) + 0.5)
+                        / Vec3::new(res[0] as f32, res[1] as f32, res[2] as f32);
+                    let p = bounds.0 + t * (bounds.1 - bounds.0);
+                    let i = grids[2].cell(p);
+                    assert!((i as usize) < grids[2].cells());
+                    assert!(seen.insert(i), "{i} twice");
+                    assert_eq!(i / 9, grids[1].cell(p), "{x} {y} {z}");
+                    assert_eq!(i / 81, grids[0].cell(p), "{x} {y} {z}");
+                    // A deeper vertex: its own child of the undivided cell, at every level.
+                    let d = grids[2].undivided_cell(p);
+                    assert!((d as usize) < grids[2].cells());
+                    assert_eq!(d / 9, grids[1].undivided_cell(p));
+                    assert_eq!(d / 81, grids[0].undivided_cell(p));
+                    assert_eq!(grids[0].undivided_cell(p), grids[0].cell(p));
+                    assert_ne!(d / 9, i / 9);
+                }
+            }
+        }
+        assert_eq!(seen.len(), 12 * 8 * 20);
+        // Subdivisions count toward the cell limit; the adaptive default coarsens instead.
+        assert!(Grid::new(bounds, Some([64, 64, 64]), 2, 8, 8).is_err());
+        assert!(Grid::new(bounds, Some([1, 1, 1]), MAX_GRID_LEVELS + 1, 8, 8).is_err());
+        let a = Grid::new(bounds, None, 4, 4096, 4096).unwrap();
+        assert!(a.cells() as u64 <= MAX_GRID_CELLS);
     }
 
     /// The `f32` coefficient rows give the same bits as the sparse `f64` binary search when
@@ -2749,6 +2881,7 @@ mod tests {
         let g = Grid::new(
             (Vec3::splat(-1.0), Vec3::new(3.0, 1.0, 2.0)),
             Some([7, 3, 5]),
+            0,
             8,
             8,
         )

@@ -445,13 +445,14 @@ pub trait VertexObserver {
 
     /// Asked at each scattering vertex before its techniques are sampled when
     /// [`CONTROLS_DIRECT`](Self::CONTROLS_DIRECT) is set: whether the observer controls this
-    /// vertex (`depth`, position `p`, shading normal `ns`). When `false`, [`path::trace`]
+    /// vertex (`depth`, position `p`, shading normal `ns`, whether its BSDF has a glossy
+    /// lobe: [`crate::bsdf::Bsdf::is_glossy`]). When `false`, [`path::trace`]
     /// treats the vertex exactly as `path` does (adds its MIS-weighted direct lighting
     /// itself, traces no extra ray) and reports it with [`vertex`](Self::vertex).
     ///
     /// [`path::trace`]: path::trace
     #[inline]
-    fn controls(&mut self, _depth: u32, _p: Vec3, _ns: Vec3) -> bool {
+    fn controls(&mut self, _depth: u32, _p: Vec3, _ns: Vec3, _glossy: bool) -> bool {
         Self::CONTROLS_DIRECT
     }
 

@@ -158,7 +158,7 @@ pub fn trace<O: VertexObserver>(
         }
         // Whether the observer owns this vertex's direct lighting (needs every technique's
         // pdf, [Hua §8]); an uncontrolled vertex is exactly `path`'s.
-        let controls = O::CONTROLS_DIRECT && observer.controls(depth, h.p, h.ns);
+        let controls = O::CONTROLS_DIRECT && observer.controls(depth, h.p, h.ns, bsdf.is_glossy());
         // Whether this vertex's MIS-weighted direct lighting is added here (`path`'s).
         let adds_direct = !controls || adds_to_path;
         let frame = Frame::from_normal(h.ns);
