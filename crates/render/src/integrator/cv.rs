@@ -80,9 +80,13 @@
 //! bitwise-identical images for any thread count and tile size.
 //!
 //! # Grid
-//! `grid_resolution = [nx, ny, nz]` regular cells over the scene bounds (at most
-//! [`MAX_GRID_CELLS`]); the adaptive default gives the longest axis `max(width, height)/16`
-//! cells (clamped to 8…128) and the others proportionally.
+//! `grid_resolution = [nx, ny, nz]` regular cells over the scene bounds; the adaptive
+//! default gives the longest axis `max(width, height)/16` cells (clamped to 8…128, fewer
+//! where the subdivisions would pass [`MAX_GRID_CELLS`]) and the others proportionally.
+//! `cms` subdivides each cell `grid_levels` times (default 2) for the camera's hits on glossy
+//! surfaces, 2×2×2 per level; every other vertex stays in the undivided cell, and the table
+//! solve fits each subdivided cell against its ancestors ([`Grid`],
+//! [`estimators::solve::SolvePolicy::levels`]).
 
 use std::collections::{BTreeMap, HashMap};
 use std::ops::Range;
