@@ -249,21 +249,21 @@ fn pair_halves(t: &BTreeMap<u64, CellAccumulator>) -> BTreeMap<u64, (CellAccumul
     out
 }
 
-/// `f` of every value of `cells`, in key order, on up to `threads` threads (contiguous
+/// `f` of every entry of `cells`, in key order, on up to `threads` threads (contiguous
 /// chunks: the result does not depend on `threads`).
 fn par_map<T: Sync, R: Send>(
     cells: &BTreeMap<u64, T>,
     threads: usize,
-    f: impl Fn(&T) -> R + Sync,
+    f: impl Fn(u64, &T) -> R + Sync,
 ) -> Vec<R> {
-    let items: Vec<&T> = cells.values().collect();
+    let items: Vec<(u64, &T)> = cells.iter().map(|(k, v)| (*k, v)).collect();
     let chunk = items.len().div_ceil(threads.max(1)).max(1);
     std::thread::scope(|s| {
         let handles: Vec<_> = items
             .chunks(chunk)
             .map(|c| {
                 let f = &f;
-                s.spawn(move || c.iter().map(|v| f(v)).collect::<Vec<_>>())
+                s.spawn(move || c.iter().map(|(k, v)| f(*k, v)).collect::<Vec<_>>())
             })
             .collect();
         handles
@@ -378,9 +378,13 @@ fn solve_hierarchy(
             })
             .collect(),
     ];
+    // Per level below the top: how many children each node's parent has.
+    let mut siblings: Vec<BTreeMap<u64, u32>> = Vec::new();
     for _ in 0..policy.levels.min(crate::spec::MAX_GRID_LEVELS) {
         let mut up: BTreeMap<u64, Node<'_>> = BTreeMap::new();
+        let mut count: BTreeMap<u64, u32> = BTreeMap::new();
         for (&k, child) in levels.last().into_iter().flatten() {
+            *count.entry(parent(k)).or_default() += 1;
             match up.get_mut(&parent(k)) {
                 Some(node) => node.absorb(child),
                 None => {
@@ -393,15 +397,28 @@ fn solve_hierarchy(
                 }
             }
         }
+        siblings.push(count);
         levels.push(up);
     }
     let half = policy.for_half();
-    // Kept fits by node key, level by level from the top: `None` = no fit kept.
-    let mut kept: BTreeMap<u64, Option<std::sync::Arc<Fit>>> = BTreeMap::new();
+    // Decisions by node key, level by level from the top.
+    let mut kept: BTreeMap<u64, Decision> = BTreeMap::new();
     let mut out = SolvedTable::default();
     for (depth, nodes) in levels.iter().enumerate().rev() {
         let above = &kept;
-        let choices = par_map(nodes, threads, |node| {
+        // An only child has its parent's sums, so its fits, scores and decision are its
+        // parent's (e.g. a cell of vertices other than glossy camera hits, alone under its
+        // undivided cell): not solved again.
+        let only_child = |k: u64| {
+            siblings
+                .get(depth)
+                .is_some_and(|c| c.get(&parent(k)) == Some(&1))
+        };
+        let decisions = par_map(nodes, threads, |k, node| {
+            let up = above.get(&parent(k));
+            if let Some(same) = up.filter(|_| only_child(k)) {
+                return same.clone();
+            }
             let full = solve(&node.merged, policy);
             let halves = match (&node.even, &node.odd) {
                 (Some(e), Some(o)) if !full.is_fallback() => {
@@ -409,57 +426,71 @@ fn solve_hierarchy(
                 }
                 _ => None,
             };
-            Fit { full, halves }
+            decide(Fit { full, halves }, up, node)
         });
         let mut next = BTreeMap::new();
-        for ((&k, node), own) in nodes.iter().zip(choices) {
-            let inherited = above.get(&parent(k)).cloned().flatten();
-            let own_score = own.held_out(node);
-            let inherited_score = inherited.as_ref().and_then(|f| f.held_out(node));
-            let checked = node.even.is_some() && node.odd.is_some();
-            let choice = if checked {
-                // Both candidates are judged on this node's halves; ties keep the node's own.
-                let own_ok = own_score.filter(|&v| v > 0.0);
-                let up_ok = inherited_score.filter(|&v| v > 0.0);
-                match (own_ok, up_ok) {
-                    (Some(a), Some(b)) if b > a => Keep::Inherited,
-                    (Some(_), _) => Keep::Own,
-                    (None, Some(_)) => Keep::Inherited,
-                    (None, None) => Keep::Neither,
-                }
-            } else if !own.full.is_fallback() {
-                Keep::Own
-            } else if inherited.is_some() {
-                Keep::Inherited
-            } else {
-                Keep::Neither
-            };
+        for ((&k, node), decision) in nodes.iter().zip(decisions) {
             if depth == 0 {
-                let co = match choice {
-                    Keep::Own => own.full,
-                    Keep::Inherited => inherited.map(|f| f.full.clone()).unwrap_or(own.full),
-                    Keep::Neither if own.full.is_fallback() => own.full,
-                    Keep::Neither => CellCoefficients::fallen_back(
-                        own.full.layout(),
-                        own.full.color(),
-                        *own.full.diagnostics(),
-                        FallbackReason::HeldOutLoss,
-                    ),
-                };
                 out.rejected += node.merged.rejected();
+                let co = match decision {
+                    Decision::Fit(f) => f.full.clone(),
+                    Decision::Fallback(co) => co.as_ref().clone(),
+                };
                 out.coefficients.insert(k, co);
             } else {
-                let fit = match choice {
-                    Keep::Own => Some(std::sync::Arc::new(own)),
-                    Keep::Inherited => inherited,
-                    Keep::Neither => None,
-                };
-                next.insert(k, fit);
+                next.insert(k, decision);
             }
         }
         kept = next;
     }
     out
+}
+
+/// A node's decision ([`solve_hierarchy`]): `own`, its parent's `up`, or neither.
+fn decide(own: Fit, up: Option<&Decision>, node: &Node<'_>) -> Decision {
+    let inherited = match up {
+        Some(Decision::Fit(f)) => Some(f),
+        _ => None,
+    };
+    let own_score = own.held_out(node);
+    let inherited_score = inherited.and_then(|f| f.held_out(node));
+    let checked = node.even.is_some() && node.odd.is_some();
+    let choice = if checked {
+        // Both candidates are judged on this node's halves; ties keep the node's own.
+        let own_ok = own_score.filter(|&v| v > 0.0);
+        let up_ok = inherited_score.filter(|&v| v > 0.0);
+        match (own_ok, up_ok) {
+            (Some(a), Some(b)) if b > a => Keep::Inherited,
+            (Some(_), _) => Keep::Own,
+            (None, Some(_)) => Keep::Inherited,
+            (None, None) => Keep::Neither,
+        }
+    } else if !own.full.is_fallback() {
+        Keep::Own
+    } else if inherited.is_some() {
+        Keep::Inherited
+    } else {
+        Keep::Neither
+    };
+    match (choice, inherited) {
+        (Keep::Own, _) => Decision::Fit(std::sync::Arc::new(own)),
+        (Keep::Inherited, Some(f)) => Decision::Fit(f.clone()),
+        _ if own.full.is_fallback() => Decision::Fallback(std::sync::Arc::new(own.full)),
+        _ => Decision::Fallback(std::sync::Arc::new(CellCoefficients::fallen_back(
+            own.full.layout(),
+            own.full.color(),
+            *own.full.diagnostics(),
+            FallbackReason::HeldOutLoss,
+        ))),
+    }
+}
+
+/// What a node of the hierarchy keeps: a fit (its own or an ancestor's), or the plain
+/// estimator with the reason ([`solve_hierarchy`]).
+#[derive(Clone)]
+enum Decision {
+    Fit(std::sync::Arc<Fit>),
+    Fallback(std::sync::Arc<CellCoefficients>),
 }
 
 /// Which fit a node of the hierarchy keeps ([`solve_hierarchy`]).
@@ -730,7 +761,7 @@ impl AccumulatorTable {
             f: impl Fn(&T) -> (CellCoefficients, u64) + Sync,
         ) -> SolvedTable {
             let mut out = SolvedTable::default();
-            for (k, (co, r)) in cells.keys().zip(par_map(cells, threads, f)) {
+            for (k, (co, r)) in cells.keys().zip(par_map(cells, threads, |_, v| f(v))) {
                 out.rejected += r;
                 out.coefficients.insert(*k, co);
             }

@@ -1731,4 +1731,39 @@ fn a_subdivided_cell_keeps_its_own_fit_or_its_parents_whichever_removes_more_hel
     }
     // The choice does not depend on the thread count.
     assert_eq!(rich.solve(&policy, 1), solved);
+    // Cells alone under their ancestors (the other vertices' child of three undivided
+    // cells, digits 8 then 0: ids 72, 153, 234 with two levels) are solved as without
+    // subdivision, bit for bit, and so are their halves' checks (the third cell's fit
+    // follows its samples' noise: `HeldOutLoss`).
+    let mut t = BTreeMap::new();
+    for (c, (slope, n)) in [(72u64, (5.0, 40)), (153, (2.0, 40)), (234, (0.0, 40))] {
+        t.insert(
+            2 * c,
+            accumulate(&many_light_samples(2, n, c, slope), 2, 1, ColorMode::Rgb),
+        );
+        t.insert(
+            2 * c + 1,
+            accumulate(
+                &many_light_samples(2, n, c + 1, slope),
+                2,
+                1,
+                ColorMode::Rgb,
+            ),
+        );
+    }
+    let lone = AccumulatorTable::Moments(t, None);
+    let two = SolvePolicy {
+        levels: 2,
+        ..policy
+    };
+    let solved = lone.solve(&two, 2);
+    assert_eq!(solved, lone.solve(&SolvePolicy { levels: 0, ..two }, 2));
+    assert_eq!(
+        solved.coefficients[&234].diagnostics().status,
+        SolveStatus::Fallback(FallbackReason::HeldOutLoss)
+    );
+    assert_eq!(
+        solved.coefficients[&72].diagnostics().status,
+        SolveStatus::Solved
+    );
 }
