@@ -229,7 +229,7 @@ pub const CMS_GROUP_SAMPLES: u64 = 16;
 /// | `training_spp` | u32 | 16 | samples per pixel of the training phase (kept in the image, weighed against the render phase's by their variance: [`crate::composite::phase_weight`]) |
 /// | `surrogate_spp` | u32 | 1 | samples per pixel of the surrogate image (only with `relative`; kept in the image) |
 /// | `grid_resolution` | `[nx, ny, nz]` \| null | null | cells per axis over the scene bounds; null = adaptive (≈ 16×16 pixels per cell) |
-/// | `grid_levels` | u32 \| null | null | each grid cell is subdivided this many times (2×2×2 children per level, at most [`MAX_GRID_LEVELS`]; `9^levels` indices per grid cell count toward the 2^20 limit) where the camera's rays hit glossy surfaces (other vertices keep the undivided cells: `render::integrator::cv::Grid`); every cell keeps the fit of its own samples or of an ancestor's, whichever removes the most variance out of sample ([`crate::solve::SolvePolicy::levels`]). 0 = one level (the cells of `grid_resolution`). null = [`CMS_GRID_LEVELS`], fewer where a given `grid_resolution` would exceed the limit. Chosen by equal-spp measurements (`docs/bench/README.md`) |
+/// | `grid_levels` | u32 \| null | null | each grid cell is subdivided this many times (2×2×2 children per level, at most [`MAX_GRID_LEVELS`]; grid cells × `9^levels` at most [`MAX_GRID_INDICES`]) where the camera's rays hit glossy surfaces (other vertices keep the undivided cells: `render::integrator::cv::Grid`); every cell keeps the fit of its own samples or of an ancestor's, whichever removes the most variance out of sample ([`crate::solve::SolvePolicy::levels`]). 0 = one level (the cells of `grid_resolution`). null = [`CMS_GRID_LEVELS`], fewer where a given `grid_resolution` would exceed that limit. Chosen by equal-spp measurements (`docs/bench/README.md`) |
 /// | `max_light_components` | u32 | 1024 | more emitters than this are clustered by spatial proximity |
 /// | `ridge` | f64 \| null | null | relative Tikhonov regularisation of each cell system: `A + ridge·diag(A)` shrinks `α` toward the base estimator (`path` with the default `base`); 0.5 scales an uncorrelated coefficient by 2/3. null = by the job's sampler ([`PhasedEstimator::for_sampler`]): **0.5 with the Sobol sampler** ([`RIDGE_STRATIFIED`]: the fits minimise the variance of independent samples, which overstates the per-pixel stratified `path`'s, so they are shrunk toward it; 1 shrank colour-lamp's fits too far, 1.42× → 1.53× at 0.5, and below 0.5 many-lights' sparsely sampled lights lose), **0.1 with the independent one** ([`RIDGE_INDEPENDENT`]: there the fits' objective is the estimator's variance, and less shrinking gains 3–10 % at equal spp on colour-lamp, `manylights-4` and veach-mis d2). Chosen by equal-spp measurements (`docs/bench/README.md`) |
 /// | `min_samples` | u64 | 16 | cells with fewer training samples fall back to the plain estimator |
@@ -530,10 +530,13 @@ impl PhasedEstimator {
             if g.contains(&0) {
                 return Err(("grid_resolution", "every axis needs at least one cell"));
             }
-            if finest_grid_cells(g, levels) > MAX_GRID_CELLS {
+            if finest_grid_cells(g, 0) > MAX_GRID_CELLS {
+                return Err(("grid_resolution", "more than 2^20 cells"));
+            }
+            if !grid_fits(g, levels) {
                 return Err((
-                    "grid_resolution",
-                    "more than 2^20 cells (after grid_levels subdivisions)",
+                    "grid_levels",
+                    "more than 2^28 cell indices (grid cells × 9^grid_levels)",
                 ));
             }
         }
@@ -541,7 +544,7 @@ impl PhasedEstimator {
     }
 
     /// Subdivisions of the grid cells: `cms`'s `grid_levels`, by default [`CMS_GRID_LEVELS`]
-    /// or as many as a given `grid_resolution` allows within [`MAX_GRID_CELLS`]; 0 for the
+    /// or as many as a given `grid_resolution` allows within [`MAX_GRID_INDICES`]; 0 for the
     /// others.
     pub fn grid_levels(&self) -> u32 {
         match self {
@@ -549,7 +552,7 @@ impl PhasedEstimator {
                 None => CMS_GRID_LEVELS,
                 Some(g) => (0..=CMS_GRID_LEVELS)
                     .rev()
-                    .find(|&l| finest_grid_cells(g, l) <= MAX_GRID_CELLS)
+                    .find(|&l| grid_fits(g, l))
                     .unwrap_or(0),
             }),
             Self::PerLightCv(_) | Self::OptimalMis(_) => 0,
@@ -587,8 +590,21 @@ impl PhasedEstimator {
     }
 }
 
-/// Most grid cells a job may ask for (the finest cells, after `grid_levels` subdivisions).
+/// Most grid cells a job may ask for (undivided; the adaptive default coarsens to fit).
 pub const MAX_GRID_CELLS: u64 = 1 << 20;
+
+/// Most cell indices of a subdivided grid (grid cells × [`CELL_CHILDREN`]`^levels`): a
+/// training key (`index · NORMAL_BINS · 2 + half`) stays below 2^32. Nothing is allocated
+/// per index (the render phase looks cells up in a map of the cells with coefficients).
+pub const MAX_GRID_INDICES: u64 = 1 << 28;
+
+/// Whether a grid of `res` cells subdivided `levels` times is within the limits
+/// ([`MAX_GRID_CELLS`], [`MAX_GRID_INDICES`], [`MAX_GRID_LEVELS`]).
+pub fn grid_fits(res: [u32; 3], levels: u32) -> bool {
+    levels <= MAX_GRID_LEVELS
+        && finest_grid_cells(res, 0) <= MAX_GRID_CELLS
+        && finest_grid_cells(res, levels) <= MAX_GRID_INDICES
+}
 
 /// Cell indices of a grid of `res` cells subdivided `levels` times, [`CELL_CHILDREN`]
 /// children each (saturating).
@@ -754,13 +770,19 @@ mod tests {
         assert_eq!(cms(None, None).solve_policy().levels, CMS_GRID_LEVELS);
         assert_eq!(cms(None, None).solve_policy().bins, NORMAL_BINS);
         assert_eq!(cms(Some([8, 8, 8]), None).grid_levels(), 2);
-        // 64³ · 9 > 2^20: no subdivision by default, an error when asked for.
-        assert_eq!(cms(Some([64, 64, 64]), None).grid_levels(), 0);
-        assert!(cms(Some([64, 64, 64]), None).validate().is_ok());
+        // 2^20 cells · 9^3 > 2^28 indices: two levels by default, an error with three.
+        let big = Some([1024, 1024, 1]);
+        assert_eq!(cms(big, None).grid_levels(), 2);
+        assert!(cms(big, None).validate().is_ok());
+        assert_eq!(cms(big, Some(3)).validate().unwrap_err().0, "grid_levels");
         assert_eq!(
-            cms(Some([64, 64, 64]), Some(1)).validate().unwrap_err().0,
+            cms(Some([2048, 1024, 1]), Some(0))
+                .validate()
+                .unwrap_err()
+                .0,
             "grid_resolution"
         );
+        assert!(grid_fits([1024, 1024, 1], 2) && !grid_fits([1, 1, 1], MAX_GRID_LEVELS + 1));
         assert_eq!(
             cms(None, Some(MAX_GRID_LEVELS + 1))
                 .validate()

@@ -15,7 +15,10 @@
 use std::collections::BTreeMap;
 
 use estimators::solve::{CellHalves, SolveStatus};
-use estimators::spec::{MAX_GRID_CELLS, MAX_GRID_LEVELS, PhasedEstimator, finest_grid_cells};
+use estimators::spec::{
+    CELL_CHILDREN, MAX_GRID_CELLS, MAX_GRID_INDICES, MAX_GRID_LEVELS, PhasedEstimator,
+    finest_grid_cells,
+};
 use estimators::surrogate::{encode_surrogate, surrogate_image};
 use estimators::table::{
     AccumulatorTable, KIND_CELL_ACCUMULATORS, KIND_MEAN_CONTRIBUTIONS, MergeRecord, SolvedTable,
@@ -79,8 +82,9 @@ pub fn table_kind(est: &PhasedEstimator) -> u16 {
 }
 
 /// Exclusive bound of the cell keys of a job's training tables: pixels for `optimal_mis`
-/// (cells = pixels [Hua §7.4]), else grid cells × [`NORMAL_BINS`] (the grid's finest cells,
-/// after `grid_levels` subdivisions, when its resolution is given; at most [`MAX_GRID_CELLS`]), twice that when the job's solve policy records
+/// (cells = pixels [Hua §7.4]), else cell indices × [`NORMAL_BINS`] (grid cells ×
+/// 9^`grid_levels`, the grid's own or [`MAX_GRID_CELLS`] for the adaptive one; at most
+/// [`MAX_GRID_INDICES`]), twice that when the job's solve policy records
 /// each cell's two halves apart (`cms`).
 pub fn cell_key_limit(est: &PhasedEstimator, job: &ResolvedJob) -> u64 {
     let grid = match est {
@@ -92,10 +96,12 @@ pub fn cell_key_limit(est: &PhasedEstimator, job: &ResolvedJob) -> u64 {
         None => u64::from(job.width) * u64::from(job.height),
         Some(g) => {
             // The finest cells: `grid_levels` subdivisions of 8 children each.
-            let cells = g.map_or(MAX_GRID_CELLS, |g| {
-                finest_grid_cells(g, est.grid_levels().min(MAX_GRID_LEVELS))
-            });
-            cells.min(MAX_GRID_CELLS) * NORMAL_BINS
+            let levels = est.grid_levels().min(MAX_GRID_LEVELS);
+            let cells = match g {
+                Some(g) => finest_grid_cells(g, levels),
+                None => MAX_GRID_CELLS.saturating_mul(CELL_CHILDREN.pow(levels)),
+            };
+            cells.min(MAX_GRID_INDICES) * NORMAL_BINS
         }
     };
     // A job whose policy records each cell's two halves apart (`CellHalves`, `cms`).
@@ -479,8 +485,11 @@ mod tests {
             check_train_block(&est, &job(), &result(vec![wrong])),
             Err(CvError::WrongKind { .. })
         ));
-        // `cms` keys are cell halves: twice the cells.
-        let far = table(2, 2 * MAX_GRID_CELLS * NORMAL_BINS);
+        // `cms` keys are cell halves: twice the cell indices (81 per grid cell with the
+        // default two levels).
+        let far = table(2, 2 * MAX_GRID_CELLS * 81 * NORMAL_BINS);
+        let near = table(2, 2 * MAX_GRID_CELLS * 81 * NORMAL_BINS - 1);
+        assert!(check_train_block(&est, &job(), &result(vec![block(&near)])).is_ok());
         assert!(matches!(
             check_train_block(&est, &job(), &result(vec![block(&far)])),
             Err(CvError::KeyRange { .. })
@@ -500,8 +509,11 @@ mod tests {
         assert_eq!(limit(&grid([4, 4, 4], Some(1))), 64 * 9 * NORMAL_BINS * 2);
         assert_eq!(
             limit(&grid([64, 64, 64], None)),
-            64 * 64 * 64 * NORMAL_BINS * 2
+            64 * 64 * 64 * 81 * NORMAL_BINS * 2
         );
+        let adaptive = PhasedEstimator::Cms(Default::default());
+        assert_eq!(limit(&adaptive), MAX_GRID_CELLS * 81 * NORMAL_BINS * 2);
+        assert!(limit(&adaptive) <= 1 << 32);
         // optimal_mis: cells are pixels.
         let om = PhasedEstimator::OptimalMis(Default::default());
         assert!(matches!(

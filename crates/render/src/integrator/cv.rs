@@ -82,7 +82,8 @@
 //! # Grid
 //! `grid_resolution = [nx, ny, nz]` regular cells over the scene bounds; the adaptive
 //! default gives the longest axis `max(width, height)/16` cells (clamped to 8…128, fewer
-//! where the subdivisions would pass [`MAX_GRID_CELLS`]) and the others proportionally.
+//! where they would pass [`MAX_GRID_CELLS`], or the subdivisions [`MAX_GRID_INDICES`]) and
+//! the others proportionally.
 //! `cms` subdivides each cell `grid_levels` times (default 2) for the camera's hits on glossy
 //! surfaces, 2×2×2 per level; every other vertex stays in the undivided cell, and the table
 //! solve fits each subdivided cell against its ancestors ([`Grid`],
@@ -100,7 +101,8 @@ use estimators::composite::{combine_phase_images, controlled_scale};
 use estimators::perlight::MeanContributionAccumulator;
 use estimators::solve::{CellCoefficients, CellHalves, SolvePolicy, SolveStatus};
 pub use estimators::spec::{
-    CvBase, CvColor, MAX_GRID_CELLS, MAX_GRID_LEVELS, PhaseSamples, PhasedEstimator, TRAIN_TILE,
+    CvBase, CvColor, MAX_GRID_CELLS, MAX_GRID_INDICES, MAX_GRID_LEVELS, PhaseSamples,
+    PhasedEstimator, TRAIN_TILE, grid_fits,
 };
 use estimators::surrogate::{PixelMoments, surrogate_image};
 use estimators::table::AccumulatorTable;
@@ -365,8 +367,8 @@ pub struct Grid {
 
 impl Grid {
     /// A grid of `res` cells (or the adaptive default for an image of `width × height`),
-    /// each subdivided `levels` times; at most [`MAX_GRID_CELLS`] finest cells (the adaptive
-    /// default coarsens until they fit).
+    /// each subdivided `levels` times, within [`grid_fits`]'s limits (the adaptive default
+    /// coarsens until it fits).
     pub fn new(
         bounds: (Vec3, Vec3),
         res: Option<[u32; 3]>,
@@ -400,20 +402,17 @@ impl Grid {
                 loop {
                     let r = |e: f32| ((n as f32 * e / longest).ceil() as u32).max(1);
                     let res = [r(ext.x), r(ext.y), r(ext.z)];
-                    if n == 1 || estimators::spec::finest_grid_cells(res, levels) <= MAX_GRID_CELLS
-                    {
+                    if n == 1 || grid_fits(res, levels) {
                         break res;
                     }
                     n -= 1;
                 }
             }
         };
-        if levels > MAX_GRID_LEVELS
-            || estimators::spec::finest_grid_cells(res, levels) > MAX_GRID_CELLS
-        {
+        if !grid_fits(res, levels) {
             return Err(RenderError::InvalidSetting {
                 field: "grid_resolution",
-                reason: "more than 2^20 cells",
+                reason: "more than 2^20 cells, or 2^28 cell indices after grid_levels",
             });
         }
         let coarse = res;
@@ -2804,11 +2803,22 @@ mod tests {
             }
         }
         assert_eq!(seen.len(), 12 * 8 * 20);
-        // Subdivisions count toward the cell limit; the adaptive default coarsens instead.
-        assert!(Grid::new(bounds, Some([64, 64, 64]), 2, 8, 8).is_err());
+        // Subdivisions count toward the index limit; the adaptive default coarsens instead.
+        assert!(Grid::new(bounds, Some([64, 64, 64]), 2, 8, 8).is_ok());
+        assert!(Grid::new(bounds, Some([1024, 1024, 1]), 3, 8, 8).is_err());
         assert!(Grid::new(bounds, Some([1, 1, 1]), MAX_GRID_LEVELS + 1, 8, 8).is_err());
         let a = Grid::new(bounds, None, 4, 4096, 4096).unwrap();
-        assert!(a.cells() as u64 <= MAX_GRID_CELLS);
+        assert!(a.cells() as u64 <= MAX_GRID_INDICES);
+        // Two levels leave the adaptive default's cells as they were: 128 on the longest
+        // axis for a 2048-pixel image (it was an error for a cube-shaped scene: 2^21 cells,
+        // now coarsened to fit).
+        let cube = (Vec3::ZERO, Vec3::ONE);
+        let g = Grid::new(bounds, None, 2, 2048, 1024).unwrap();
+        assert_eq!(g.resolution()[0] >> 2, 128);
+        let c = Grid::new(cube, None, 2, 2048, 2048).unwrap();
+        assert!(c.resolution()[0] >> 2 < 128 && (c.cells() as u64) <= MAX_GRID_INDICES);
+        let undivided: u64 = c.resolution().iter().map(|&r| u64::from(r >> 2)).product();
+        assert!(undivided <= MAX_GRID_CELLS);
     }
 
     /// The `f32` coefficient rows give the same bits as the sparse `f64` binary search when
