@@ -81,7 +81,7 @@ pub struct SolvePolicy {
     pub halves: CellHalves,
     /// Subdivisions of the grid the cells come from: with [`CellHalves::CrossFitted`] and
     /// `levels > 0`, the cells (`key / 2`) are the finest of a hierarchy whose parent of
-    /// cell `c·bins + b` is `(c / 8)·bins + b` ([`crate::spec::CELL_CHILDREN`]), and every
+    /// cell `c·bins + b` is `(c / 9)·bins + b` ([`crate::spec::cell_ancestor`]), and every
     /// cell keeps, of its own fit and the fit its parent kept, the one that removes the
     /// most variance out of sample ([`crate::table::AccumulatorTable::solve`]). Used by the
     /// table solve; [`solve`] itself ignores it.

@@ -622,6 +622,13 @@ pub const MAX_GRID_LEVELS: u32 = 4;
 /// `i / CELL_CHILDREN` (`render::integrator::cv::Grid`).
 pub const CELL_CHILDREN: u64 = 9;
 
+/// The index of cell `id`'s ancestor `up` levels above it, for keys `cell · bins + bin`
+/// ([`CELL_CHILDREN`] children per cell, the normal bin kept).
+pub fn cell_ancestor(id: u64, bins: u32, up: u32) -> u64 {
+    let bins = u64::from(bins.max(1));
+    (id / bins / CELL_CHILDREN.saturating_pow(up)) * bins + id % bins
+}
+
 /// Table keys per grid cell: the renderer splits every grid cell by the dominant axis and
 /// sign of the shading normal, key = `cell · NORMAL_BINS + bin`.
 pub const NORMAL_BINS: u32 = 6;

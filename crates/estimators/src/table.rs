@@ -27,6 +27,7 @@ use crate::perlight::MeanContributionAccumulator;
 use crate::solve::{
     CellCoefficients, CellHalves, FallbackReason, SolvePolicy, solve, variance_reduction,
 };
+use crate::spec::cell_ancestor;
 
 /// Magic bytes of an encoded table.
 pub const TABLE_MAGIC: [u8; 4] = *b"CVCT";
@@ -279,11 +280,10 @@ fn undivided(
     cells: impl Iterator<Item = (u64, CellAccumulator)>,
     policy: &SolvePolicy,
 ) -> (BTreeMap<u64, CellAccumulator>, BTreeMap<u64, Vec<u64>>) {
-    let bins = u64::from(policy.bins.max(1));
-    let span = crate::spec::CELL_CHILDREN.pow(policy.levels.min(crate::spec::MAX_GRID_LEVELS));
+    let levels = policy.levels.min(crate::spec::MAX_GRID_LEVELS);
     let (mut sums, mut members) = (BTreeMap::new(), BTreeMap::<u64, Vec<u64>>::new());
     for (k, a) in cells {
-        let up = (k / bins / span) * bins + k % bins;
+        let up = cell_ancestor(k, policy.bins, levels);
         match sums.get_mut(&up) {
             // One job's cells: their layouts agree (else the cell is left out of the fit).
             Some(m) => {
@@ -363,8 +363,7 @@ fn solve_hierarchy(
     policy: &SolvePolicy,
     threads: usize,
 ) -> SolvedTable {
-    let bins = u64::from(policy.bins.max(1));
-    let parent = |id: u64| (id / bins / crate::spec::CELL_CHILDREN) * bins + id % bins;
+    let parent = |id: u64| cell_ancestor(id, policy.bins, 1);
     let mut levels: Vec<BTreeMap<u64, Node<'_>>> = vec![
         cells
             .iter()

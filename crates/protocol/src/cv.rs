@@ -95,7 +95,7 @@ pub fn cell_key_limit(est: &PhasedEstimator, job: &ResolvedJob) -> u64 {
     let cells = match grid {
         None => u64::from(job.width) * u64::from(job.height),
         Some(g) => {
-            // The finest cells: `grid_levels` subdivisions of 8 children each.
+            // The cell indices: `grid_levels` subdivisions of `CELL_CHILDREN` each.
             let levels = est.grid_levels().min(MAX_GRID_LEVELS);
             let cells = match g {
                 Some(g) => finest_grid_cells(g, levels),

@@ -334,6 +334,12 @@ fn split_clusters(mut pts: Vec<(u32, Vec3)>, k: usize, out: &mut Vec<Vec<u32>>) 
     split_clusters(right, k - k1, out);
 }
 
+/// Children of a subdivided cell ([`estimators::spec::CELL_CHILDREN`]): octants `0..8`, then
+/// [`OTHER_CHILD`].
+const CHILDREN: u32 = estimators::spec::CELL_CHILDREN as u32;
+/// The child of a subdivided cell that holds its vertices other than glossy camera hits.
+const OTHER_CHILD: u32 = 8;
+
 /// A regular grid over the scene bounds, its cells subdivided `levels` times for the
 /// camera's hits on glossy surfaces (2×2×2 children per level, and a ninth child for the
 /// other vertices: [`estimators::spec::CELL_CHILDREN`]).
@@ -447,12 +453,18 @@ impl Grid {
     /// zeros; the plain row-major index with `levels` 0).
     #[inline]
     pub fn undivided_cell(&self, p: Vec3) -> u32 {
-        let c = self.coords(p) >> self.levels;
-        let index = c.x + self.coarse[0] * (c.y + self.coarse[1] * c.z);
+        let index = self.undivided_index(self.coords(p));
         match self.levels {
             0 => index,
-            l => (index * 9 + 8) * 9u32.pow(l - 1),
+            l => (index * CHILDREN + OTHER_CHILD) * CHILDREN.pow(l - 1),
         }
+    }
+
+    /// Row-major index of the undivided cell of finest cell coordinates `c`.
+    #[inline]
+    fn undivided_index(&self, c: glam::UVec3) -> u32 {
+        let k = c >> self.levels;
+        k.x + self.coarse[0] * (k.y + self.coarse[1] * k.z)
     }
 
     /// Index of the finest cell containing `p` (clamped to the grid), as a camera hit's
@@ -460,14 +472,10 @@ impl Grid {
     #[inline]
     pub fn cell(&self, p: Vec3) -> u32 {
         let c = self.coords(p);
-        if self.levels == 0 {
-            return c.x + self.res[0] * (c.y + self.res[1] * c.z);
-        }
-        let k = c >> self.levels;
-        let mut index = k.x + self.coarse[0] * (k.y + self.coarse[1] * k.z);
+        let mut index = self.undivided_index(c);
         for l in (0..self.levels).rev() {
             let b = (c >> l) & 1;
-            index = index * 9 + (b.x | (b.y << 1) | (b.z << 2));
+            index = index * CHILDREN + (b.x | (b.y << 1) | (b.z << 2));
         }
         index
     }
