@@ -609,9 +609,17 @@ pub fn grid_fits(res: [u32; 3], levels: u32) -> bool {
 /// Cell indices of a grid of `res` cells subdivided `levels` times, [`CELL_CHILDREN`]
 /// children each (saturating).
 pub fn finest_grid_cells(res: [u32; 3], levels: u32) -> u64 {
-    res.iter()
-        .fold(1u64, |n, &r| n.saturating_mul(u64::from(r)))
-        .saturating_mul(CELL_CHILDREN.saturating_pow(levels))
+    grid_indices(
+        res.iter()
+            .fold(1u64, |n, &r| n.saturating_mul(u64::from(r))),
+        levels,
+    )
+}
+
+/// Cell indices of `cells` grid cells subdivided `levels` times: `cells ·`
+/// [`CELL_CHILDREN`]`^levels` (saturating).
+pub fn grid_indices(cells: u64, levels: u32) -> u64 {
+    cells.saturating_mul(CELL_CHILDREN.saturating_pow(levels))
 }
 
 /// Most subdivisions of a grid cell (`cms`'s `grid_levels`).

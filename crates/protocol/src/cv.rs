@@ -16,8 +16,8 @@ use std::collections::BTreeMap;
 
 use estimators::solve::{CellHalves, SolveStatus};
 use estimators::spec::{
-    CELL_CHILDREN, MAX_GRID_CELLS, MAX_GRID_INDICES, MAX_GRID_LEVELS, PhasedEstimator,
-    finest_grid_cells,
+    MAX_GRID_CELLS, MAX_GRID_INDICES, MAX_GRID_LEVELS, PhasedEstimator, finest_grid_cells,
+    grid_indices,
 };
 use estimators::surrogate::{encode_surrogate, surrogate_image};
 use estimators::table::{
@@ -99,7 +99,7 @@ pub fn cell_key_limit(est: &PhasedEstimator, job: &ResolvedJob) -> u64 {
             let levels = est.grid_levels().min(MAX_GRID_LEVELS);
             let cells = match g {
                 Some(g) => finest_grid_cells(g, levels),
-                None => MAX_GRID_CELLS.saturating_mul(CELL_CHILDREN.pow(levels)),
+                None => grid_indices(MAX_GRID_CELLS, levels),
             };
             cells.min(MAX_GRID_INDICES) * NORMAL_BINS
         }

@@ -318,7 +318,7 @@ impl Sampler {
             .to_f32_norm()
     }
 
-    /// White-noise fallback keyed by (seed, pixel, sample, dimension).
+    /// White-noise fallback keyed by (seed, pixel, sample, dimension):
     /// `mix64(mix64(mix64(seed ^ C) ^ pixel) ^ (sample << 32 | dim))`, the first two steps
     /// precomputed ([`Self::hash_base`]).
     #[inline]
