@@ -106,7 +106,7 @@ pub use estimators::spec::{
 };
 use estimators::surrogate::{PixelMoments, surrogate_image};
 use estimators::table::AccumulatorTable;
-use glam::{Vec2, Vec3};
+use glam::{Vec2, Vec3, Vec3A};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -556,7 +556,8 @@ impl CvContext<'_> {
 #[derive(Debug)]
 pub struct CoefficientTable {
     slot: SlotMap,
-    /// Per slot: the coefficients (only read when `stride == 0`).
+    /// Per slot: the coefficients (the general route of [`Self::term`]; the render phase reads
+    /// the rows where there are any).
     coeffs: Vec<CellCoefficients>,
     /// Per slot `stride` `bfloat16` bit patterns (see the type docs) when the rows fit
     /// ([`DENSE_ROW_MAX`], [`DENSE_TOTAL_MAX`]), else empty (`stride = 0`) and the terms come
@@ -699,50 +700,32 @@ impl CoefficientTable {
         self.coeffs.push(co.clone());
     }
 
-    /// `Σ_k α_k` of slot `slot` (added once per vertex).
+    /// `Σ_k α_k` of slot `slot` from its coefficients (the general route, with [`Self::term`]).
     #[inline]
     fn alpha_sum(&self, slot: usize) -> [f64; 3] {
-        if self.stride == 0 {
-            return self.coeffs[slot].alpha_sum();
-        }
-        let h = &self.sums[slot];
-        [0, 1, 2].map(|c| f64::from(h[c]) + f64::from(h[3 + c]))
+        self.coeffs[slot].alpha_sum()
     }
 
-    /// `Σ_k α_k λ_k(x)/p(x)` of one sample (the BSDF component only with `bsdf`): the same
-    /// arithmetic as [`CellCoefficients::cv_term`], through the `f32` row when there is one.
+    /// Slot `slot`'s dense row and its `Σα` (`f32` hi and lo parts per channel); `None`
+    /// without rows (`stride = 0`).
+    #[inline]
+    fn dense(&self, slot: usize) -> Option<(&[u16], &[f32; 6])> {
+        if self.stride == 0 {
+            return None;
+        }
+        let row = self
+            .rows
+            .get(slot * self.stride..(slot + 1) * self.stride)?;
+        Some((row, self.sums.get(slot)?))
+    }
+
+    /// `Σ_k α_k λ_k(x)/p(x)` of one sample (the BSDF component only with `bsdf`), from the
+    /// cell's coefficients in `f64` ([`CellCoefficients::cv_term`]): the general route of a
+    /// controlled vertex (a table without dense rows); [`Policy::apply_dense`] reads the rows.
     #[inline]
     fn term(&self, slot: usize, s: &TechSample, bsdf: bool) -> [f64; 3] {
-        if self.stride == 0 {
-            let lb = [s.lambda_bsdf];
-            return self.coeffs[slot].cv_term(&s.cv(if bsdf { &lb } else { &[] }));
-        }
-        let mut t = [0.0f64; 3];
-        // `pdf > 0 && pdf finite` as two comparisons (NaN fails both); `is_finite` compiled
-        // to a class test of ~20 instructions, ≈ 1 % of a render phase's instructions.
-        if !((s.pdf > 0.0) & (s.pdf < f64::INFINITY)) {
-            return t;
-        }
-        let inv_p = 1.0 / s.pdf;
-        let row = &self.rows[slot * self.stride..(slot + 1) * self.stride];
-        if bsdf && s.lambda_bsdf != 0.0 {
-            let r = s.lambda_bsdf * inv_p;
-            for (o, &a) in t.iter_mut().zip(&row[0..3]) {
-                *o += f64::from(from_bf16(a)) * r;
-            }
-        }
-        if let Some((c, l)) = s.partition
-            && l != 0.0
-        {
-            let at = ROW_HEAD + 3 * c as usize;
-            if let Some(a) = row.get(at..at + 3) {
-                let r = l * inv_p;
-                for (o, &a) in t.iter_mut().zip(a) {
-                    *o += f64::from(from_bf16(a)) * r;
-                }
-            }
-        }
-        t
+        let lb = [s.lambda_bsdf];
+        self.coeffs[slot].cv_term(&s.cv(if bsdf { &lb } else { &[] }))
     }
 }
 
@@ -1101,6 +1084,96 @@ impl Policy<'_, '_> {
         Some([nee, bsdf])
     }
 
+    /// A controlled vertex of the render phase through its cell's dense coefficient `row`:
+    /// the base estimate `Σ_s R_s F_s` (zero unless `values`) and the subtracted term
+    /// `Σ_s R_s Σ_k α_k λ_k(x_s)/p(x_s)` [Hua eq. 17], in `f32` — the samples of
+    /// [`Self::samples`] without their `f64` records. `None` where `samples` has no NEE
+    /// sample (the general route handles it).
+    #[inline(always)]
+    fn apply_dense(&self, row: &[u16], r: &VertexRecord, values: bool) -> Option<(Vec3A, Vec3A)> {
+        let nee_light = r.nee_light?;
+        let comps = &self.ctx.comps;
+        let per_light = self.ctx.kind == Kind::PerLight;
+        let alpha = |at: usize| {
+            row.get(at..at + 3).map_or(Vec3A::ZERO, |a| {
+                Vec3A::new(from_bf16(a[0]), from_bf16(a[1]), from_bf16(a[2]))
+            })
+        };
+        let partition = |c: u32| alpha(ROW_HEAD + 3 * c as usize);
+        let ok = |p: f32| (p > 0.0) & (p < f32::INFINITY);
+        let mut plain = Vec3A::ZERO;
+        let mut term = Vec3A::ZERO;
+        match r.light {
+            Some(lt) => {
+                let (c, inv_s) = comps.of(lt.light)?;
+                let pl = lt.pdf_light;
+                let pb = if lt.visible { lt.pdf_bsdf } else { 0.0 };
+                let p = if per_light { pl } else { pl + pb };
+                if values {
+                    plain += Vec3A::from(lt.value) * (self.ctx.base.weight(pl, lt.pdf_bsdf) / pl);
+                }
+                if ok(p) {
+                    let inv_p = 1.0 / p;
+                    if !per_light && pb != 0.0 {
+                        term += alpha(0) * (pb * inv_p);
+                    }
+                    let l = pl * inv_s as f32;
+                    if l != 0.0 {
+                        term += partition(c) * (l * inv_p);
+                    }
+                }
+            }
+            // A failed light sample: no value, `p = 1`.
+            None => {
+                let (c, inv_s) = comps.of(nee_light)?;
+                let l = inv_s as f32;
+                if l != 0.0 {
+                    term += partition(c) * l;
+                }
+            }
+        }
+        match r.bsdf {
+            // No BSDF sample: `λ_bsdf/p = 1`.
+            None if !per_light => term += alpha(0),
+            None => {}
+            Some(b) if !b.traced => {}
+            Some(b) => {
+                let scale = if b.rr_q == 1.0 { 1.0 } else { 1.0 / b.rr_q };
+                let f = Vec3A::from(b.weight * b.emitted);
+                if b.delta {
+                    if values {
+                        plain += f * scale;
+                    }
+                    if !per_light {
+                        term += alpha(0) * scale;
+                    }
+                } else {
+                    let (pb, pl) = (b.pdf_bsdf, b.pdf_light);
+                    if values {
+                        plain += f * (scale * self.ctx.base.weight(pb, pl));
+                    }
+                    let p = pb + pl;
+                    // `per_light_cv` controls the NEE sample only [Hua §7.2].
+                    if !per_light && ok(p) {
+                        let r = scale / p;
+                        let mut t = Vec3A::ZERO;
+                        if pb != 0.0 {
+                            t += alpha(0) * pb;
+                        }
+                        if let Some(l) = b.hit_light
+                            && pl > 0.0
+                            && let Some((c, inv_s)) = comps.of(l)
+                        {
+                            t += partition(c) * (pl * inv_s as f32);
+                        }
+                        term += t * r;
+                    }
+                }
+            }
+        }
+        Some((plain, term))
+    }
+
     /// The vertex's cell key: its finest grid cell where `fine` (a glossy camera hit), else
     /// its undivided one ([`Grid`]); its pixel for `optimal_mis`'s camera hits.
     // Always inlined: called out of line, `p` and `ns` went through the stack (≈ 7 % of a
@@ -1171,6 +1244,22 @@ impl VertexObserver for Policy<'_, '_> {
     #[inline]
     fn controlled_vertex(&mut self, r: &VertexRecord) -> Vec3 {
         let adds_to_path = self.adds_to_path();
+        // The render phase's common case: a dense row, in `f32`.
+        if let (Phase::Apply(table), Some(slot)) = (&self.phase, self.slot)
+            && let Some((row, sums)) = table.dense(slot)
+            && let Some((plain, term)) = self.apply_dense(row, r, !adds_to_path)
+        {
+            // `Σα − Σ_s R_s Σ_k α_k λ_k/p` [Hua eq. 17], the hi part first.
+            let d = (Vec3A::new(sums[0], sums[1], sums[2]) - term)
+                + Vec3A::new(sums[3], sums[4], sums[5]);
+            let d = r.throughput * Vec3::from(d);
+            self.cv_delta += d;
+            return if adds_to_path {
+                d
+            } else {
+                r.throughput * Vec3::from(plain) + d
+            };
+        }
         // Set by `controls` for this vertex.
         let cell = self.cell;
         let training = matches!((&self.phase, cell), (Phase::Train(_), Some(_)));
@@ -2554,6 +2643,7 @@ fn estimator_name(e: &Estimator) -> &'static str {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::integrator::{BsdfTechnique, LightTechnique};
 
     #[test]
     fn image_variance_weighs_each_pixel_by_its_own_surrogate() {
@@ -2847,69 +2937,124 @@ mod tests {
         assert!(undivided <= MAX_GRID_CELLS);
     }
 
-    /// The `f32` coefficient rows give the same bits as the sparse `f64` binary search when
-    /// the coefficients are `f32` values, and `Σα` is exactly the sum of the stored `α`.
+    /// The render phase's dense route ([`Policy::apply_dense`], `f32` rows) and the general
+    /// one (the samples' `f64` records and [`CellCoefficients::cv_term`]) give the same
+    /// controlled estimate and CV term to `f32` rounding, for every kind of vertex record:
+    /// NEE sampled, failed or occluded, the BSDF sample traced, untraced, missing, a point
+    /// mass, rouletted, hitting a light or not. The coefficients are `bfloat16` values, so
+    /// both routes use the same `α`.
     #[test]
-    fn dense_and_sparse_coefficient_terms_agree() {
-        let layout = ComponentLayout::new(5, 1).unwrap();
+    fn the_dense_route_agrees_with_the_general_one() {
+        let (rs, st) = cms_scene("veach-mis", 8, 8, 1);
+        let job = CvJob::new(&rs, &st).unwrap().expect("a phased estimator");
+        let layout = job.ctx.layout;
+        assert!(layout.partitions >= 2 && layout.overlapping == 1);
+        let bf = |x: f64| f64::from(from_bf16(to_bf16(x as f32)));
+        let partitions: Vec<(u32, [f64; 3])> = (0..layout.partitions)
+            .map(|c| {
+                let c64 = f64::from(c);
+                (c, [bf(0.3 + c64), bf(-0.7 * c64), bf(0.11 * c64 - 0.2)])
+            })
+            .collect();
         let co = CellCoefficients::from_values(
             layout,
-            ColorMode::Rgb,
-            &[(1, [0.5, -0.25, 2.0]), (4, [0.0009765625, 3.0, -7.5])],
-            &[[0.125, 0.75, -1.5]],
+            job.ctx.color,
+            &partitions,
+            &[[0.625, -1.25, 0.0390625]],
         )
         .unwrap();
-        let mk = |stride| {
-            let mut t = CoefficientTable {
-                slot: SlotMap::one(0, 0),
-                coeffs: Vec::new(),
-                rows: Vec::new(),
-                sums: Vec::new(),
-                stride,
+        let key = 7;
+        let dense = job
+            .coefficient_table(&BTreeMap::from([(u64::from(key), co)]))
+            .unwrap();
+        assert!(dense.dense(0).is_some());
+        let mut sparse = job
+            .coefficient_table(&BTreeMap::from([(u64::from(key), dense.coeffs[0].clone())]))
+            .unwrap();
+        sparse.stride = 0;
+        assert!(sparse.dense(0).is_none());
+        let run = |table: &CoefficientTable, r: &VertexRecord| {
+            let mut policy = Policy {
+                ctx: &job.ctx,
+                phase: Phase::Apply(table),
+                pixel: 0,
+                surrogate: None,
+                cv_delta: Vec3::ZERO,
+                first_cell: None,
+                cell: Some(key),
+                slot: Some(0),
+                half: None,
             };
-            t.push(&co);
-            t
+            let out = policy.controlled_vertex(r);
+            (out, policy.cv_delta)
         };
-        let (dense, sparse) = (mk(ROW_HEAD + 3 * 5), mk(0));
-        assert_eq!(dense.get(0), Some(0));
-        assert_eq!(dense.alpha_sum(0), co.alpha_sum());
-        assert_eq!(sparse.alpha_sum(0), co.alpha_sum());
-        for (i, part) in [
-            None,
-            Some((1, 0.3)),
-            Some((4, 2.5)),
-            Some((2, 1.0)),
-            Some((1, 0.0)),
-        ]
-        .into_iter()
-        .enumerate()
-        {
-            let s = TechSample {
-                value: [1.0; 3],
-                pdf: 0.5 + i as f64,
-                partition: part,
-                lambda_bsdf: 0.25 * i as f64,
-                scale: 1.0,
+        let mut state = 0x9E37_79B9_7F4A_7C15u64;
+        let mut u = move || {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1);
+            ((state >> 40) as f32) / (1u64 << 24) as f32
+        };
+        let lights = layout.partitions;
+        let (mut compared, mut nonzero) = (0, 0);
+        for i in 0..400u32 {
+            let light = i % lights;
+            let nee = match i % 4 {
+                0 => None,
+                n => Some(LightTechnique {
+                    light,
+                    wi: Vec3::Z,
+                    pdf_light: 0.05 + 3.0 * u(),
+                    pdf_bsdf: if n == 3 { 0.0 } else { 2.0 * u() },
+                    value: Vec3::new(u(), 2.0 * u(), 0.5 * u()),
+                    visible: n != 2,
+                }),
             };
-            for bsdf in [true, false] {
-                let a = dense.term(0, &s, bsdf);
-                let b = if bsdf {
-                    sparse.term(0, &s, bsdf)
-                } else {
-                    // The sparse path without the BSDF component needs a K = 0 layout;
-                    // compare against the explicit partition term instead.
-                    let mut t = [0.0; 3];
-                    if let Some((c, l)) = part {
-                        let r = l * (1.0 / s.pdf);
-                        for (o, a) in t.iter_mut().zip(co.alpha_partition(c)) {
-                            *o += a * r;
-                        }
-                    }
-                    t
-                };
-                assert_eq!(a.map(f64::to_bits), b.map(f64::to_bits), "{part:?} {bsdf}");
+            let bsdf = match (i / 4) % 5 {
+                0 => None,
+                n => Some(BsdfTechnique {
+                    wi: Vec3::Y,
+                    pdf_bsdf: 0.1 + 4.0 * u(),
+                    pdf_light: if n == 2 { 0.0 } else { 2.0 * u() },
+                    weight: Vec3::new(u(), u(), u()),
+                    emitted: if n == 2 {
+                        Vec3::ZERO
+                    } else {
+                        Vec3::splat(1.0 + 5.0 * u())
+                    },
+                    hit_light: (n != 2).then_some((i / 3) % lights),
+                    delta: n == 4,
+                    traced: n != 1,
+                    rr_q: if i % 3 == 0 { 1.0 } else { 0.25 + 0.7 * u() },
+                }),
+            };
+            let r = VertexRecord {
+                depth: i % 3,
+                p: Vec3::ZERO,
+                ns: Vec3::Z,
+                throughput: Vec3::new(0.5 + u(), 1.0, 0.25 + u()),
+                light: nee,
+                nee_light: Some(light),
+                bsdf,
+            };
+            let (a, da) = run(&dense, &r);
+            let (b, db) = run(&sparse, &r);
+            for (x, y) in [(a, b), (da, db)] {
+                let tol = 2e-5 * (1.0 + y.abs().max_element());
+                assert!((x - y).abs().max_element() <= tol, "record {i}: {x} vs {y}");
+                nonzero += usize::from(y.abs().max_element() > 0.1);
             }
+            compared += 1;
         }
+        assert_eq!(compared, 400);
+        assert!(nonzero > 600, "{nonzero}");
+    }
+
+    /// A dense row's `Σα` is the sum of its `bfloat16`-rounded `α` (what the dense route
+    /// subtracts terms of), to `f64` precision through the `f32` hi/lo pair.
+    #[test]
+    fn dense_rows_sum_their_rounded_alpha() {
+        let layout = ComponentLayout::new(5, 1).unwrap();
         // Coefficients that are not `bfloat16` values: `Σα` is the sum of the rounded `α`.
         let odd = CellCoefficients::from_values(
             layout,
@@ -2937,7 +3082,8 @@ mod tests {
                 want[c] += a[c];
             }
         }
-        let got = t.alpha_sum(0);
+        let h = t.sums[0];
+        let got = [0, 1, 2].map(|c| f64::from(h[c]) + f64::from(h[3 + c]));
         for c in 0..3 {
             assert!(
                 (got[c] - want[c]).abs() <= 1e-14 * want[c].abs(),
