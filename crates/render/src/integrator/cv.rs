@@ -2674,6 +2674,18 @@ mod tests {
 
     /// `scenes/<name>` at `width × height`, with `cms` (defaults) at 24 spp, depth 5.
     fn cms_scene(name: &str, width: u32, height: u32, seed: u64) -> (RenderScene, RenderSettings) {
+        let cms = Estimator::Cms(super::super::cms::CmsOptions::default());
+        cv_scene(name, width, height, seed, cms)
+    }
+
+    /// Scene `name` of `scenes/` at `width × height`, depth 5, 24 spp, with `estimator`.
+    fn cv_scene(
+        name: &str,
+        width: u32,
+        height: u32,
+        seed: u64,
+        estimator: Estimator,
+    ) -> (RenderScene, RenderSettings) {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
             .join(format!("../../scenes/{name}/scene.json"));
         let mut scene = scene::load_file(&path).expect("scene loads").scene;
@@ -2683,7 +2695,7 @@ mod tests {
             spp: 24,
             seed,
             max_depth: 5,
-            estimator: Estimator::Cms(super::super::cms::CmsOptions::default()),
+            estimator,
             ..RenderSettings::from_scene(&scene)
         };
         (RenderScene::new(&scene, &st).unwrap(), st)
@@ -2941,14 +2953,24 @@ mod tests {
     /// one (the samples' `f64` records and [`CellCoefficients::cv_term`]) give the same
     /// controlled estimate and CV term to `f32` rounding, for every kind of vertex record:
     /// NEE sampled, failed or occluded, the BSDF sample traced, untraced, missing, a point
-    /// mass, rouletted, hitting a light or not. The coefficients are `bfloat16` values, so
-    /// both routes use the same `α`.
+    /// mass, rouletted, hitting a light or not — for `cms` and for `per_light_cv` (the NEE
+    /// sample alone controlled). The coefficients are `bfloat16` values, so both routes use
+    /// the same `α`.
     #[test]
     fn the_dense_route_agrees_with_the_general_one() {
-        let (rs, st) = cms_scene("veach-mis", 8, 8, 1);
+        for estimator in [
+            Estimator::Cms(super::super::cms::CmsOptions::default()),
+            Estimator::PerLightCv(super::super::per_light_cv::PerLightCvOptions::default()),
+        ] {
+            dense_route_agrees_with_the_general_one(estimator);
+        }
+    }
+
+    fn dense_route_agrees_with_the_general_one(estimator: Estimator) {
+        let (rs, st) = cv_scene("veach-mis", 8, 8, 1, estimator);
         let job = CvJob::new(&rs, &st).unwrap().expect("a phased estimator");
         let layout = job.ctx.layout;
-        assert!(layout.partitions >= 2 && layout.overlapping == 1);
+        assert!(layout.partitions >= 2, "{layout:?}");
         let bf = |x: f64| f64::from(from_bf16(to_bf16(x as f32)));
         let partitions: Vec<(u32, [f64; 3])> = (0..layout.partitions)
             .map(|c| {
@@ -2960,7 +2982,7 @@ mod tests {
             layout,
             job.ctx.color,
             &partitions,
-            &[[0.625, -1.25, 0.0390625]],
+            &vec![[0.625, -1.25, 0.0390625]; layout.overlapping as usize],
         )
         .unwrap();
         let key = 7;
