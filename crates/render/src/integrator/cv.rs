@@ -1087,8 +1087,8 @@ impl Policy<'_, '_> {
     /// A controlled vertex of the render phase through its cell's dense coefficient `row`:
     /// the base estimate `Σ_s R_s F_s` (zero unless `values`) and the subtracted term
     /// `Σ_s R_s Σ_k α_k λ_k(x_s)/p(x_s)` [Hua eq. 17], in `f32` — the samples of
-    /// [`Self::samples`] without their `f64` records. `None` where `samples` has no NEE
-    /// sample (the general route handles it).
+    /// [`Self::samples`] without their `f64` records. `None` where NEE did not run or its
+    /// light (sampled or selected) is in no partition: the general route handles those.
     #[inline(always)]
     fn apply_dense(&self, row: &[u16], r: &VertexRecord, values: bool) -> Option<(Vec3A, Vec3A)> {
         let nee_light = r.nee_light?;
