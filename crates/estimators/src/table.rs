@@ -743,6 +743,33 @@ impl AccumulatorTable {
         }
     }
 
+    /// Whether [`Self::solve`] keeps the fits under `policy` (does not switch them off:
+    /// [`SolvedTable::switched_off`]) either as given or with every cell fitted on its own
+    /// samples (`levels` 0).
+    ///
+    /// For a check without held-out halves to choose a level by ([`CellHalves::Merged`]: a
+    /// subdivided table's cells take their undivided ancestors' fits), which the table
+    /// solve with halves makes per node ([`CellHalves::CrossFitted`]): where the cells'
+    /// integrands differ within an undivided cell (a glossy highlight) only their own fits
+    /// pay, and where each cell has few samples only the pooled ones do. Without levels the
+    /// two are one solve.
+    pub fn fits_pay_pooled_or_alone(&self, policy: &SolvePolicy, threads: usize) -> bool {
+        if self.solve(policy, threads).switched_off.is_none() {
+            return true;
+        }
+        policy.levels > 0
+            && self
+                .solve(
+                    &SolvePolicy {
+                        levels: 0,
+                        ..*policy
+                    },
+                    threads,
+                )
+                .switched_off
+                .is_none()
+    }
+
     /// Solves every cell ([`solve`] for moments [Hua eq. 32–33], the mean contributions for
     /// `per_light_cv` [Hua §7.2]) on up to `threads` threads. Cells are independent, so the
     /// result does not depend on `threads`. The table's [`predicted_image_gain`] (with a

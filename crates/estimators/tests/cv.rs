@@ -1658,6 +1658,66 @@ fn family_table(
     (AccumulatorTable::Moments(t, None), wholes)
 }
 
+/// A check without halves (a training tile's probe) keeps the fits of a subdivided table
+/// when either the pooled fits (the undivided cell's, which merged halves give its
+/// children) or the children's own fits pay, and switches them off only when neither does.
+#[test]
+fn a_check_without_halves_keeps_fits_that_pay_pooled_or_alone() {
+    let policy = SolvePolicy {
+        halves: CellHalves::Merged,
+        levels: 1,
+        bins: 1,
+        min_fit_gain: 0.3,
+        ..grouped_policy(1)
+    };
+    let alone = SolvePolicy {
+        levels: 0,
+        ..policy
+    };
+    let off = |t: &AccumulatorTable, p: &SolvePolicy| t.solve(p, 2).switched_off;
+    // Children of opposite slopes (+5 and −5): pooled, the undivided cell's coefficient is
+    // near the mean slope and removes little; alone, each child removes most of its variance.
+    let (opposite, _) = family_table(2, |c| {
+        let slope = if c % 2 == 0 { 5.0 } else { -5.0 };
+        (
+            many_light_samples(2, 200, 3000 + 2 * c, slope),
+            many_light_samples(2, 200, 3001 + 2 * c, slope),
+        )
+    });
+    assert_eq!(off(&opposite, &policy), Some(FallbackReason::LowFitGain));
+    assert_eq!(off(&opposite, &alone), None);
+    assert!(opposite.fits_pay_pooled_or_alone(&policy, 2));
+    // One integrand, too few samples per child to fit alone (12 < `min_samples`): only the
+    // pooled fit pays.
+    let (thin, _) = family_table(2, |c| {
+        (
+            many_light_samples(2, 3, 4000 + 2 * c, 5.0),
+            many_light_samples(2, 3, 4001 + 2 * c, 5.0),
+        )
+    });
+    assert_eq!(off(&thin, &policy), None);
+    assert_eq!(off(&thin, &alone), Some(FallbackReason::LowFitGain));
+    assert!(thin.fits_pay_pooled_or_alone(&policy, 2));
+    // Values that are noise only: neither pays, the fits are switched off.
+    let (noise, _) = family_table(2, |c| {
+        (
+            many_light_samples(2, 200, 5000 + 2 * c, 0.0),
+            many_light_samples(2, 200, 5001 + 2 * c, 0.0),
+        )
+    });
+    assert!(off(&noise, &policy).is_some() && off(&noise, &alone).is_some());
+    assert!(!noise.fits_pay_pooled_or_alone(&policy, 2));
+    // Without levels there is one solve.
+    assert!(!opposite.fits_pay_pooled_or_alone(
+        &SolvePolicy {
+            levels: 0,
+            min_fit_gain: 0.99,
+            ..policy
+        },
+        2
+    ));
+}
+
 #[test]
 fn a_subdivided_cell_keeps_its_own_fit_or_its_parents_whichever_removes_more_held_out() {
     let policy = SolvePolicy {

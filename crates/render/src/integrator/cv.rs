@@ -1414,6 +1414,20 @@ fn probe_policy(mut policy: SolvePolicy) -> SolvePolicy {
 /// See [`probe_policy`].
 const PROBE_MARGIN: f64 = 0.5;
 
+/// Whether a training tile stops recording after its probe ([`TRAIN_PROBE_SPP`]): its
+/// table's fits are switched off under [`probe_policy`] both with the cells taking their
+/// undivided ancestors' fits and with every cell fitted on its own
+/// ([`AccumulatorTable::fits_pay_pooled_or_alone`]). The job's solve chooses between the two
+/// per node (held out), so a tile stops only when neither would pay. Judged by the pooled
+/// fits alone, the veach-mis tiles of the glossy plates, whose highlights the subdivided
+/// cells are for, stopped (4 of 6 training tiles, and the job lost 7–8 % at equal spp:
+/// `docs/bench/README.md`); judged by the finest cells alone, thinly sampled cells stopped
+/// checkers tiles that the pooled fits keep. Both solves are of the tile's own samples, so
+/// the decision is the same on every worker and for any thread count.
+fn probe_stops(probe: &AccumulatorTable, policy: SolvePolicy) -> bool {
+    !probe.fits_pay_pooled_or_alone(&probe_policy(policy), 1)
+}
+
 /// Training samples per pixel a training tile records before it checks its own table
 /// against the job's `min_image_gain` / `min_fit_gain` (the table-wide switch of
 /// [`AccumulatorTable::solve`], applied to the tile's cells alone, with each minimum lowered
@@ -1702,7 +1716,7 @@ impl<'a> CvJob<'a> {
                     cells.clone(),
                     image_variance(&film, width, surrogate),
                 );
-                stopped = probe.solve(&probe_policy(policy), 1).switched_off.is_some();
+                stopped = probe_stops(&probe, policy);
                 if stopped {
                     // The rest as `path`. The probe covered every pixel: only `optimal_mis`
                     // has the split check, and its policy sets no table minimum
