@@ -1431,7 +1431,8 @@ fn probe_stops(probe: &AccumulatorTable, policy: SolvePolicy) -> bool {
 /// Training samples per pixel a training tile records before it checks its own table
 /// against the job's `min_image_gain` / `min_fit_gain` (the table-wide switch of
 /// [`AccumulatorTable::solve`], applied to the tile's cells alone, with each minimum lowered
-/// by half its size). Below either, the tile traces the rest of its training samples as
+/// by half its size, pooled and cell by cell: [`probe_stops`]). Below either, whichever way
+/// the cells are fitted, the tile traces the rest of its training samples as
 /// `path` and reports only these: on a scene whose fits cannot pay, the whole job would fall
 /// back at the train barrier anyway, and recording costs +25…+45 % per training sample (most
 /// of such a job's overhead). The decision depends only on the tile's own samples (fixed by
