@@ -22,10 +22,12 @@
 //!   (one per light or light cluster, the env map) whose pdfs never overlap, so a sample has
 //!   a nonzero `λ_k` for at most one of them, and `K` **overlapping** components (BSDF,
 //!   guiding lobes). The matrix `A` is therefore stored sparsely: the diagonal of the
-//!   partition block, the `P × K` cross block and the small dense `K × K` block; partitions
-//!   are stored only once sampled: their moments in first-touch order (a new partition is
-//!   appended, nothing moves), their indices in a sorted list pointing at those slots, so
-//!   every reader (iteration, merge, encoding, equality) sees them in increasing index order.
+//!   partition block, the `P × K` cross block and the small dense `K × K` block. A sorted
+//!   list of the sampled partitions' indices points at their storage slots, so every
+//!   reader (iteration, merge, encoding, equality) sees them in increasing index order:
+//!   with at most [`SLOT_IS_PARTITION_MAX`] partitions, partition `k`'s slot is `k` (all `P`
+//!   slots allocated at the first partition sample), else slots are appended in
+//!   first-touch order (nothing moves).
 //! - Accumulation is in `f64` whatever the caller's precision. A sample with a NaN/Inf
 //!   anywhere, a non-positive pdf or an out-of-range index is **rejected and counted**
 //!   ([`CellAccumulator::rejected`]) and leaves every sum untouched.
@@ -36,12 +38,17 @@
 //!   decoding validates sizes, ordering and finiteness and never panics.
 //!
 //! # Hot loop
-//! [`CellAccumulator::add`] allocates only the first time a partition is seen in the
-//! cell (an append of its moments and one insertion into the sorted `u32` index list); it
-//! touches the dense block, the overlapping right-hand sides and the one sampled
-//! partition's entry (found through a direct index map when `P <= DIRECT_MAP_MAX`, else by
-//! binary search with a one-entry cache for runs of samples from the same light).
-//! Measured: 18–28 ns per sample for `P = 64`, `K = 2`, RGB (`benches/cells.rs`).
+//! [`CellAccumulator::add`] allocates only at a cell's first partition sample (all slots,
+//! or room for 64 appended ones) and, with appended slots, when a partition is first seen;
+//! a partition's first sample in the cell also inserts its index into the sorted `u32`
+//! list. It touches the accumulator itself (the overlapping components' sums are kept
+//! inside it for small `K`) and the one sampled partition's entry, which holds its count:
+//! slot = partition for `P <= SLOT_IS_PARTITION_MAX`, else found through a direct index map
+//! when `P <= DIRECT_MAP_MAX`, else by binary search with a one-entry cache for runs of
+//! samples from the same light. In a training pass the cells are far larger than the
+//! caches, so what a sample costs is the cache lines it touches (many-lights d5: one miss,
+//! on the partition entry, where there were four).
+//! Measured: 18–28 ns per sample for `P = 64`, `K = 2`, RGB (`benches/cells.rs`, warm).
 
 use thiserror::Error;
 
@@ -242,40 +249,116 @@ pub struct CellAccumulator {
     /// `[Σ w y_c, Σ w y_c²]` per channel `c` of the colour mode (the first `2·C` entries),
     /// for the variance a fit removes (see [`CellAccumulator::value_moments`]).
     value: [f64; 2 * CHANNELS],
-    /// Packed upper triangle (row-major, `j >= i`) of the `K × K` overlapping block.
-    dense: Vec<f64>,
-    /// `K × C` right-hand sides of the overlapping components.
-    b_overlap: Vec<f64>,
-    /// `Σ w λ_j/p` of the `K` overlapping components (for centred residuals).
-    g_overlap: Vec<f64>,
     /// The light technique's `[Σ w, Σ w y_c]` (the first `1 + C` entries; see [`Technique`]).
     light: [f64; 1 + CHANNELS],
-    /// The light technique's `Σ w λ_j/p` of the `K` overlapping components.
-    g_overlap_light: Vec<f64>,
+    /// The overlapping components' sums ([`OverlapSums`]).
+    over: OverlapSums,
     /// Sampled partition indices, strictly increasing.
     part_ids: Vec<u32>,
-    /// Per entry of `part_ids`: the storage slot of its moments.
+    /// Per entry of `part_ids`: the storage slot of its moments (the partition itself when
+    /// `P <= SLOT_IS_PARTITION_MAX`).
     part_slots: Vec<u32>,
-    /// Per storage slot (first-touch order): accepted samples of the partition.
-    part_counts: Vec<u64>,
-    /// Per storage slot: `[diag, cross_0..K, b_0..C, g, g_light]` with `g = Σ w λ_k/p` and
-    /// `g_light` its light-technique part.
+    /// Per storage slot: `[diag, cross_0..K, b_0..C, g, g_light, count]` with
+    /// `g = Σ w λ_k/p`, `g_light` its light-technique part and `count` the accepted samples
+    /// of the partition (an integer in `f64`, exact below 2⁵³; decoding refuses larger). With
+    /// `P <= SLOT_IS_PARTITION_MAX` the slots are the partitions (all `P` allocated at the
+    /// first partition sample, a zero count for one not sampled); else they are appended in
+    /// first-touch order.
     part_data: Vec<f64>,
     /// Partition and storage slot of the most recently used partition (`u32::MAX` = none;
-    /// hot-loop cache, not part of equality).
+    /// hot-loop cache, not part of equality; only with `P > SLOT_IS_PARTITION_MAX`).
     last: (u32, u32),
     /// Direct partition → storage slot map (`u32::MAX` = not sampled) when
-    /// `P <= DIRECT_MAP_MAX`, else empty and slots are found by binary search (hot-loop
-    /// cache; not part of equality or the encoding).
+    /// `SLOT_IS_PARTITION_MAX < P <= DIRECT_MAP_MAX`, else empty: slots are the partitions,
+    /// or found by binary search (hot-loop cache; not part of equality or the encoding).
     slot_map: Vec<u32>,
 }
 
-/// Partitions an accumulator makes room for at its first partition sample (`min(P, 64)`):
-/// a cell of a many-light scene meets most of its lights, and growing the lists one
-/// partition at a time cost a reallocation and copy per doubling in every cell (many-lights,
-/// 64 lights, 256², 16 training spp, one thread: training 1.45–1.49 s with room for 8,
-/// 1.36–1.43 s with 64; `cv_overhead` harness). At most 64 entries of
-/// `[diag, cross, b, g, g_light]` plus index, slot and count per cell.
+/// Values [`OverlapSums`] keeps in the accumulator itself: the sums of a layout with one
+/// overlapping component (the BSDF) in RGB take 6.
+const INLINE_OVERLAP: usize = 8;
+
+/// The sums of the `K` overlapping components, one array
+/// `[dense | b | g | g_light]`: the packed upper triangle (row-major, `j >= i`) of the
+/// `K × K` block, the `K × C` right-hand sides, `Σ w λ_j/p` (for centred residuals) and its
+/// light-technique part ([`Technique`]).
+///
+/// Kept inside the accumulator when it fits ([`INLINE_OVERLAP`]): a training sample updates
+/// them, and in their own allocations they were a cache miss of their own per sample
+/// (many-lights d5 training: one of the four loads that made up ¾ of
+/// [`CellAccumulator::add`]'s time, `perf annotate`).
+#[derive(Clone, Debug)]
+enum OverlapSums {
+    Inline { len: u8, v: [f64; INLINE_OVERLAP] },
+    Heap(Vec<f64>),
+}
+
+impl OverlapSums {
+    fn zeros(len: usize) -> Self {
+        if len <= INLINE_OVERLAP {
+            Self::Inline {
+                len: len as u8,
+                v: [0.0; INLINE_OVERLAP],
+            }
+        } else {
+            Self::Heap(vec![0.0; len])
+        }
+    }
+
+    #[inline]
+    fn as_slice(&self) -> &[f64] {
+        match self {
+            Self::Inline { len, v } => &v[..*len as usize],
+            Self::Heap(v) => v,
+        }
+    }
+
+    #[inline]
+    fn as_mut_slice(&mut self) -> &mut [f64] {
+        match self {
+            Self::Inline { len, v } => &mut v[..*len as usize],
+            Self::Heap(v) => v,
+        }
+    }
+}
+
+/// The four parts of an [`OverlapSums`] array of `k` components and `c` channels:
+/// `(dense, b, g, g_light)`.
+#[inline]
+fn overlap_parts(v: &[f64], k: usize, c: usize) -> (&[f64], &[f64], &[f64], &[f64]) {
+    let (dense, rest) = v.split_at(k * (k + 1) / 2);
+    let (b, rest) = rest.split_at(k * c);
+    let (g, g_light) = rest.split_at(k);
+    (dense, b, g, g_light)
+}
+
+/// [`overlap_parts`], mutable.
+#[inline]
+fn overlap_parts_mut(
+    v: &mut [f64],
+    k: usize,
+    c: usize,
+) -> (&mut [f64], &mut [f64], &mut [f64], &mut [f64]) {
+    let (dense, rest) = v.split_at_mut(k * (k + 1) / 2);
+    let (b, rest) = rest.split_at_mut(k * c);
+    let (g, g_light) = rest.split_at_mut(k);
+    (dense, b, g, g_light)
+}
+
+/// Largest `P` whose accumulators store partition `k`'s moments in slot `k`, all `P` slots
+/// allocated at the cell's first partition sample (≤ 64 entries of ≤ 8 values for `K = 1`,
+/// RGB: 4 KiB, what the appended layout reserved for them). A sample then finds its entry
+/// with no index map, and its count in the same entry: many-lights d5 training (64 lights),
+/// the slot map and the separate count array were two of the four cache misses that made
+/// up ¾ of [`CellAccumulator::add`]'s time, and a partition's first sample in a cell (an
+/// insertion into the appended layout) 6 % of the training pass.
+pub const SLOT_IS_PARTITION_MAX: u32 = 64;
+
+/// Partitions an accumulator with `P > SLOT_IS_PARTITION_MAX` makes room for at its first
+/// partition sample: a cell of a many-light scene meets many of its lights, and growing the
+/// lists one partition at a time cost a reallocation and copy per doubling in every cell
+/// (many-lights, 64 lights, 256², 16 training spp, one thread: training 1.45–1.49 s with
+/// room for 8, 1.36–1.43 s with 64; `cv_overhead` harness).
 const FIRST_RESERVE: usize = 64;
 
 /// Largest `P` for which an accumulator keeps a direct partition → slot map (4 bytes per
@@ -297,15 +380,12 @@ impl PartialEq for CellAccumulator {
             && self.weight_sum == o.weight_sum
             && self.weight_sq_sum == o.weight_sq_sum
             && self.value == o.value
-            && self.dense == o.dense
-            && self.b_overlap == o.b_overlap
-            && self.g_overlap == o.g_overlap
+            && self.over.as_slice() == o.over.as_slice()
             && self.light == o.light
-            && self.g_overlap_light == o.g_overlap_light
             && self.part_ids == o.part_ids
             && self.part_slots.iter().zip(&o.part_slots).all(|(&a, &b)| {
                 let (a, b) = (a as usize, b as usize);
-                self.part_counts[a] == o.part_counts[b] && self.entry(a) == o.entry(b)
+                self.stored_entry(a) == o.stored_entry(b)
             })
     }
 }
@@ -322,17 +402,13 @@ impl CellAccumulator {
             weight_sum: 0.0,
             weight_sq_sum: 0.0,
             value: [0.0; 2 * CHANNELS],
-            dense: vec![0.0; k * (k + 1) / 2],
-            b_overlap: vec![0.0; k * color.channels()],
-            g_overlap: vec![0.0; k],
             light: [0.0; 1 + CHANNELS],
-            g_overlap_light: vec![0.0; k],
+            over: OverlapSums::zeros(k * (k + 1) / 2 + k * color.channels() + 2 * k),
             part_ids: Vec::new(),
             part_slots: Vec::new(),
-            part_counts: Vec::new(),
             part_data: Vec::new(),
             last: (u32::MAX, 0),
-            slot_map: if layout.partitions <= DIRECT_MAP_MAX {
+            slot_map: if (SLOT_IS_PARTITION_MAX + 1..=DIRECT_MAP_MAX).contains(&layout.partitions) {
                 vec![u32::MAX; layout.partitions as usize]
             } else {
                 Vec::new()
@@ -394,14 +470,37 @@ impl CellAccumulator {
         self.part_ids.len()
     }
 
+    /// Values of a partition's moments `[diag, cross_0..K, b_0..C, g, g_light]`.
     fn stride(&self) -> usize {
         3 + self.layout.overlapping as usize + self.color.channels()
     }
 
-    /// The moments `[diag, cross_0..K, b_0..C, g, g_light]` of storage slot `slot`.
+    /// Values of a storage slot: the moments and the count.
+    fn slot_len(&self) -> usize {
+        self.stride() + 1
+    }
+
+    /// Whether partition `k`'s storage slot is `k` ([`SLOT_IS_PARTITION_MAX`]).
+    #[inline]
+    fn slot_is_partition(&self) -> bool {
+        self.layout.partitions <= SLOT_IS_PARTITION_MAX
+    }
+
+    /// Storage slot `slot`: the moments `[diag, cross_0..K, b_0..C, g, g_light]` then the
+    /// count.
+    fn stored_entry(&self, slot: usize) -> &[f64] {
+        let n = self.slot_len();
+        &self.part_data[slot * n..(slot + 1) * n]
+    }
+
+    /// The moments of storage slot `slot`.
     fn entry(&self, slot: usize) -> &[f64] {
-        let stride = self.stride();
-        &self.part_data[slot * stride..(slot + 1) * stride]
+        &self.stored_entry(slot)[..self.stride()]
+    }
+
+    /// The count of storage slot `slot`.
+    fn count(&self, slot: usize) -> u64 {
+        self.stored_entry(slot)[self.stride()] as u64
     }
 
     fn moments(&self, id: u32, slot: usize) -> PartitionMoments<'_> {
@@ -409,7 +508,7 @@ impl CellAccumulator {
         let d = self.entry(slot);
         PartitionMoments {
             id,
-            count: self.part_counts[slot],
+            count: self.count(slot),
             diag: d[0],
             cross: &d[1..1 + k],
             b: &d[1 + k..1 + k + c],
@@ -430,18 +529,24 @@ impl CellAccumulator {
     pub fn dense(&self, i: usize, j: usize) -> f64 {
         let k = self.layout.overlapping as usize;
         let (i, j) = if i <= j { (i, j) } else { (j, i) };
-        self.dense[row_start(k, i) + (j - i)]
+        self.overlap().0[row_start(k, i) + (j - i)]
+    }
+
+    /// `(dense, b, g, g_light)` of the overlapping components ([`OverlapSums`]).
+    fn overlap(&self) -> (&[f64], &[f64], &[f64], &[f64]) {
+        let (k, c) = (self.layout.overlapping as usize, self.color.channels());
+        overlap_parts(self.over.as_slice(), k, c)
     }
 
     /// `b_{P+i}` of overlapping component `i`, one value per channel of the colour mode.
     pub fn b_overlapping(&self, i: usize) -> &[f64] {
         let c = self.color.channels();
-        &self.b_overlap[i * c..(i + 1) * c]
+        &self.overlap().1[i * c..(i + 1) * c]
     }
 
     /// `Σ w λ_i/p` of overlapping component `i`.
     pub fn g_overlapping(&self, i: usize) -> f64 {
-        self.g_overlap[i]
+        self.overlap().2[i]
     }
 
     /// The light technique's sums ([`Technique`]): `Σ w`, `Σ w y_c` per channel of the colour
@@ -452,7 +557,7 @@ impl CellAccumulator {
     pub fn technique_sums(&self) -> (f64, [f64; CHANNELS], &[f64]) {
         let mut y = [0.0; CHANNELS];
         y.copy_from_slice(&self.light[1..]);
-        (self.light[0], y, &self.g_overlap_light)
+        (self.light[0], y, self.overlap().3)
     }
 
     /// The sampled partitions in increasing index order.
@@ -467,9 +572,19 @@ impl CellAccumulator {
         Some(self.moments(id, self.part_slots[i] as usize))
     }
 
-    /// Storage slot of partition `id`, appending a zeroed entry the first time it is seen.
+    /// Storage slot of partition `id` (`id < P`), with a zeroed entry the first time it is
+    /// seen.
     #[inline]
     fn slot_for(&mut self, id: u32) -> usize {
+        if self.slot_is_partition() {
+            // The entry's count tells a sampled partition; the entry is read right after.
+            let n = self.slot_len();
+            let at = id as usize * n + n - 1;
+            if self.part_data.get(at).is_some_and(|&c| c != 0.0) {
+                return id as usize;
+            }
+            return self.insert_partition(id);
+        }
         match self.slot_map.get(id as usize) {
             Some(&s) if s != u32::MAX => return s as usize,
             Some(_) => {}
@@ -479,25 +594,61 @@ impl CellAccumulator {
         self.find_or_insert(id)
     }
 
+    /// Storage slot of partition `id` when it was sampled.
+    #[inline]
+    fn stored_slot(&self, id: u32) -> Option<usize> {
+        if self.slot_is_partition() {
+            let n = self.slot_len();
+            let at = id as usize * n + n - 1;
+            return self
+                .part_data
+                .get(at)
+                .is_some_and(|&c| c != 0.0)
+                .then_some(id as usize);
+        }
+        match self.slot_map.get(id as usize) {
+            Some(&s) => (s != u32::MAX).then_some(s as usize),
+            None => self
+                .part_ids
+                .binary_search(&id)
+                .ok()
+                .map(|i| self.part_slots[i] as usize),
+        }
+    }
+
+    /// Lists partition `id` (not yet sampled) in slot `id`, allocating all `P` slots the
+    /// first time ([`SLOT_IS_PARTITION_MAX`]).
+    #[cold]
+    fn insert_partition(&mut self, id: u32) -> usize {
+        if self.part_data.is_empty() {
+            let p = self.layout.partitions as usize;
+            self.part_data = vec![0.0; p * self.slot_len()];
+            self.part_ids.reserve(p);
+            self.part_slots.reserve(p);
+        }
+        let i = self.part_ids.partition_point(|&x| x < id);
+        self.part_ids.insert(i, id);
+        self.part_slots.insert(i, id);
+        id as usize
+    }
+
     #[cold]
     fn find_or_insert(&mut self, id: u32) -> usize {
         let slot = match self.part_ids.binary_search(&id) {
             Ok(i) => self.part_slots[i] as usize,
             Err(i) => {
-                let s = self.part_counts.len();
+                let n = self.slot_len();
+                let s = self.part_data.len() / n;
                 if s == 0 {
-                    // Skip the growth steps of the four lists (allocator calls and copies).
-                    let n = (self.layout.partitions as usize).min(FIRST_RESERVE);
-                    self.part_ids.reserve(n);
-                    self.part_slots.reserve(n);
-                    self.part_counts.reserve(n);
-                    self.part_data.reserve(n * self.stride());
+                    // Skip the growth steps of the three lists (allocator calls and copies).
+                    let r = (self.layout.partitions as usize).min(FIRST_RESERVE);
+                    self.part_ids.reserve(r);
+                    self.part_slots.reserve(r);
+                    self.part_data.reserve(r * n);
                 }
                 self.part_ids.insert(i, id);
                 self.part_slots.insert(i, s as u32);
-                self.part_counts.push(0);
-                let len = self.part_data.len() + self.stride();
-                self.part_data.resize(len, 0.0);
+                self.part_data.resize(self.part_data.len() + n, 0.0);
                 if let Some(m) = self.slot_map.get_mut(id as usize) {
                     *m = s as u32;
                 }
@@ -669,31 +820,32 @@ impl CellAccumulator {
             self.value[ch] += wy;
             self.value[c + ch] += wy * yc;
         }
+        let (dense, b_over, g_over, g_light) = overlap_parts_mut(self.over.as_mut_slice(), k, c);
         if light {
             self.light[0] += w;
             for (ch, &yc) in y.iter().enumerate() {
                 self.light[1 + ch] += w * yc;
             }
-            for (g, &l) in self.g_overlap_light.iter_mut().zip(lam) {
+            for (g, &l) in g_light.iter_mut().zip(lam) {
                 *g += w * (l * inv_p);
             }
         }
         for i in 0..k {
             let wri = w * (lam[i] * inv_p);
             let row = row_start(k, i);
-            for (d, &lj) in self.dense[row..row + (k - i)].iter_mut().zip(&lam[i..k]) {
+            for (d, &lj) in dense[row..row + (k - i)].iter_mut().zip(&lam[i..k]) {
                 *d += wri * (lj * inv_p);
             }
             for (ch, &yc) in y.iter().enumerate() {
-                self.b_overlap[i * c + ch] += wri * yc;
+                b_over[i * c + ch] += wri * yc;
             }
-            self.g_overlap[i] += wri;
+            g_over[i] += wri;
         }
         if let Some((id, rk)) = part {
             let stride = 3 + k + c;
             let slot = self.slot_for(id);
-            self.part_counts[slot] += 1;
-            let d = &mut self.part_data[slot * stride..(slot + 1) * stride];
+            let d = &mut self.part_data[slot * (stride + 1)..(slot + 1) * (stride + 1)];
+            d[stride] += 1.0;
             let wrk = w * rk;
             d[0] += wrk * rk;
             for (dj, &lj) in d[1..1 + k].iter_mut().zip(lam) {
@@ -724,19 +876,15 @@ impl CellAccumulator {
         for (a, b) in self.value.iter_mut().zip(&other.value) {
             *a += b;
         }
-        for (a, b) in self.dense.iter_mut().zip(&other.dense) {
-            *a += b;
-        }
-        for (a, b) in self.b_overlap.iter_mut().zip(&other.b_overlap) {
-            *a += b;
-        }
-        for (a, b) in self.g_overlap.iter_mut().zip(&other.g_overlap) {
-            *a += b;
-        }
         for (a, b) in self.light.iter_mut().zip(&other.light) {
             *a += b;
         }
-        for (a, b) in self.g_overlap_light.iter_mut().zip(&other.g_overlap_light) {
+        for (a, b) in self
+            .over
+            .as_mut_slice()
+            .iter_mut()
+            .zip(other.over.as_slice())
+        {
             *a += b;
         }
         if other.part_ids.is_empty() {
@@ -748,30 +896,32 @@ impl CellAccumulator {
         // the sorted list. Same sums, counts and sorted view (equality, encoding) as a
         // merge-join, without rebuilding every list on each merge: the band and tile tables of
         // a training phase are merged cell by cell, mostly into partitions already present.
-        let stride = self.stride();
-        if self.part_ids.is_empty() {
-            let n = other.part_ids.len();
-            self.part_ids.reserve(n);
-            self.part_slots.reserve(n);
-            self.part_counts.reserve(n);
-            self.part_data.reserve(n * stride);
+        let n = self.slot_len();
+        if self.part_ids.is_empty() && !self.slot_is_partition() {
+            let r = other.part_ids.len();
+            self.part_ids.reserve(r);
+            self.part_slots.reserve(r);
+            self.part_data.reserve(r * n);
         }
         for (id, j) in other.sorted_slots() {
-            let src = other.entry(j);
+            // The moments and the count: summed alike.
+            let src = other.stored_entry(j);
             match self.stored_slot(id) {
                 Some(s) => {
-                    self.part_counts[s] += other.part_counts[j];
-                    let dst = &mut self.part_data[s * stride..(s + 1) * stride];
+                    let dst = &mut self.part_data[s * n..(s + 1) * n];
                     for (p, q) in dst.iter_mut().zip(src) {
                         *p += q;
                     }
                 }
+                None if self.slot_is_partition() => {
+                    let s = self.insert_partition(id);
+                    self.part_data[s * n..(s + 1) * n].copy_from_slice(src);
+                }
                 None => {
-                    let s = self.part_counts.len();
+                    let s = self.part_data.len() / n;
                     let at = self.part_ids.partition_point(|&x| x < id);
                     self.part_ids.insert(at, id);
                     self.part_slots.insert(at, s as u32);
-                    self.part_counts.push(other.part_counts[j]);
                     self.part_data.extend_from_slice(src);
                     if let Some(m) = self.slot_map.get_mut(id as usize) {
                         *m = s as u32;
@@ -780,19 +930,6 @@ impl CellAccumulator {
             }
         }
         Ok(())
-    }
-
-    /// Storage slot of partition `id` if it was sampled (direct map or binary search).
-    #[inline]
-    fn stored_slot(&self, id: u32) -> Option<usize> {
-        match self.slot_map.get(id as usize) {
-            Some(&s) => (s != u32::MAX).then_some(s as usize),
-            None => self
-                .part_ids
-                .binary_search(&id)
-                .ok()
-                .map(|i| self.part_slots[i] as usize),
-        }
     }
 
     /// Merges `parts` in the given (canonical) order into an accumulator of `layout`.
@@ -820,6 +957,8 @@ pub const MAGIC: [u8; 4] = *b"CVAC";
 /// [`crate::solve::variance_reduction`], a version-2 cell has no between-technique spread
 /// (its within-technique figures are the pooled ones).
 pub const VERSION: u16 = 3;
+/// Largest partition count an accumulator holds (its counts are `f64`, exact up to 2⁵³).
+const MAX_PARTITION_COUNT: u64 = 1 << 53;
 /// Size of the fixed header in bytes.
 const HEADER_LEN: usize = 4 + 2 + 1 + 1 + 4 + 4 + 8 + 8 + 8 + 8;
 
@@ -851,20 +990,20 @@ impl CellAccumulator {
         for v in &self.value[..2 * self.color.channels()] {
             out.extend_from_slice(&v.to_le_bytes());
         }
-        for v in self
-            .dense
+        let (dense, b_over, g_over, g_light) = self.overlap();
+        for v in dense
             .iter()
-            .chain(&self.b_overlap)
-            .chain(&self.g_overlap)
+            .chain(b_over)
+            .chain(g_over)
             .chain(&self.light[..1 + self.color.channels()])
-            .chain(&self.g_overlap_light)
+            .chain(g_light)
         {
             out.extend_from_slice(&v.to_le_bytes());
         }
         out.extend_from_slice(&(self.part_ids.len() as u32).to_le_bytes());
         for (id, slot) in self.sorted_slots() {
             out.extend_from_slice(&id.to_le_bytes());
-            out.extend_from_slice(&self.part_counts[slot].to_le_bytes());
+            out.extend_from_slice(&self.count(slot).to_le_bytes());
             for v in self.entry(slot) {
                 out.extend_from_slice(&v.to_le_bytes());
             }
@@ -875,11 +1014,7 @@ impl CellAccumulator {
     /// Exact length of [`encode`](Self::encode)'s output.
     pub fn encoded_len(&self) -> usize {
         HEADER_LEN
-            + 8 * (3 * self.color.channels()
-                + 1
-                + self.dense.len()
-                + self.b_overlap.len()
-                + 2 * self.g_overlap.len())
+            + 8 * (3 * self.color.channels() + 1 + self.over.as_slice().len())
             + 4
             + self.part_ids.len() * (12 + 8 * self.stride())
     }
@@ -919,25 +1054,25 @@ impl CellAccumulator {
                 *v = r.nonneg_f64()?;
             }
         }
-        for v in acc.dense.iter_mut().chain(acc.b_overlap.iter_mut()) {
+        let (k, c) = (overlapping as usize, color.channels());
+        let (dense, b_over, g_over, g_light) = overlap_parts_mut(acc.over.as_mut_slice(), k, c);
+        for v in dense.iter_mut().chain(b_over.iter_mut()) {
             *v = r.finite_f64()?;
         }
         if version >= 2 {
-            for v in acc.g_overlap.iter_mut() {
+            for v in g_over.iter_mut() {
                 *v = r.finite_f64()?;
             }
         }
         if version >= 3 {
-            let c = color.channels();
             acc.light[0] = r.nonneg_f64()?;
             for v in &mut acc.light[1..1 + c] {
                 *v = r.finite_f64()?;
             }
-            for v in acc.g_overlap_light.iter_mut() {
+            for v in g_light.iter_mut() {
                 *v = r.finite_f64()?;
             }
         }
-        let k = overlapping as usize;
         for i in 0..k {
             let at = r.pos;
             if acc.dense(i, i) < 0.0 {
@@ -959,31 +1094,41 @@ impl CellAccumulator {
             return Err(CellError::BadEntryCount(entries));
         }
         let n = entries as usize;
-        acc.part_ids.reserve_exact(n);
-        acc.part_slots.reserve_exact(n);
-        acc.part_counts.reserve_exact(n);
-        acc.part_data.reserve_exact(n * stride);
+        let mut entry = Vec::with_capacity(stride + 1);
         let mut prev: Option<u32> = None;
         for _ in 0..n {
             let at = r.pos;
             let id = r.u32()?;
             let count = r.u64()?;
-            if id >= partitions || prev.is_some_and(|p| id <= p) || count == 0 {
+            // Counts are kept in `f64` (exact below 2⁵³).
+            if id >= partitions
+                || prev.is_some_and(|p| id <= p)
+                || count == 0
+                || count > MAX_PARTITION_COUNT
+            {
                 return Err(CellError::BadPartition(at));
             }
             prev = Some(id);
-            acc.part_slots.push(acc.part_ids.len() as u32);
-            acc.part_ids.push(id);
-            acc.part_counts.push(count);
-            acc.part_data.push(r.nonneg_f64()?);
+            entry.clear();
+            entry.push(r.nonneg_f64()?);
             for _ in 1..stride - 2 {
-                let v = r.finite_f64()?;
-                acc.part_data.push(v);
+                entry.push(r.finite_f64()?);
             }
             for present in [version >= 2, version >= 3] {
-                acc.part_data
-                    .push(if present { r.finite_f64()? } else { 0.0 });
+                entry.push(if present { r.finite_f64()? } else { 0.0 });
             }
+            entry.push(count as f64);
+            // Increasing ids, none stored yet: the slot is new (a merge into an empty
+            // accumulator would add to zeros, which is not a copy for `-0.0`).
+            let s = if acc.slot_is_partition() {
+                acc.insert_partition(id)
+            } else {
+                acc.part_slots.push(acc.part_ids.len() as u32);
+                acc.part_ids.push(id);
+                acc.part_data.resize(acc.part_data.len() + stride + 1, 0.0);
+                acc.part_ids.len() - 1
+            };
+            acc.part_data[s * (stride + 1)..(s + 1) * (stride + 1)].copy_from_slice(&entry);
         }
         if r.pos != bytes.len() {
             return Err(CellError::Trailing(bytes.len() - r.pos));

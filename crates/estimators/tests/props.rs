@@ -293,3 +293,82 @@ proptest! {
         let _ = decode_table::<estimators::solve::CellCoefficients>(&coeff_header);
     }
 }
+
+/// The samples of `samples` (their partitions all below [`P`]) added to an accumulator of `p`
+/// partitions and `k ≤ K` overlapping components (each sample's first `k` `λ`s).
+fn build_in(samples: &[Smp], p: u32, k: u32, color: ColorMode) -> CellAccumulator {
+    let mut acc = CellAccumulator::new(ComponentLayout::new(p, k).unwrap(), color);
+    for s in samples {
+        let technique = if s.light {
+            Technique::Light
+        } else {
+            Technique::Bsdf
+        };
+        let sample = CvSample {
+            pdf: s.pdf,
+            partition: s.part,
+            overlapping: &s.lam[..k as usize],
+        };
+        acc.add_from(technique, s.w, s.v, &sample).unwrap();
+    }
+    acc
+}
+
+/// Every sum of `acc` but the layout, bit for bit (the partitions by index).
+fn sums(acc: &CellAccumulator) -> Vec<u64> {
+    let k = acc.layout().overlapping as usize;
+    let mut out = vec![acc.samples(), acc.weight_sum().to_bits()];
+    for ch in 0..acc.color().channels() {
+        let (s, s2) = acc.value_moments(ch);
+        out.extend([s.to_bits(), s2.to_bits()]);
+    }
+    for i in 0..k {
+        for j in 0..k {
+            out.push(acc.dense(i, j).to_bits());
+        }
+        out.extend(acc.b_overlapping(i).iter().map(|v| v.to_bits()));
+        out.push(acc.g_overlapping(i).to_bits());
+    }
+    let (w, y, g) = acc.technique_sums();
+    out.push(w.to_bits());
+    out.extend(y.iter().chain(g).map(|v| v.to_bits()));
+    for m in acc.partitions() {
+        out.extend([u64::from(m.id), m.count, m.diag.to_bits(), m.g.to_bits()]);
+        out.push(m.g_light.to_bits());
+        out.extend(m.cross.iter().chain(m.b).map(|v| v.to_bits()));
+    }
+    out
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(64))]
+
+    /// The accumulator's three ways of storing partitions (slot = partition for
+    /// `P <= SLOT_IS_PARTITION_MAX`, appended slots found through a direct map up to
+    /// `DIRECT_MAP_MAX`, by binary search above) and its two of storing the overlapping sums
+    /// (inline for small `K`, else allocated) keep the same sums, bit for bit, through
+    /// accumulation, merges and the wire.
+    #[test]
+    fn every_storage_layout_keeps_the_same_sums(a in prop::collection::vec(smp(), 0..40), b in prop::collection::vec(smp(), 0..40), c in color(), k in 1..=K) {
+        use estimators::cell::{DIRECT_MAP_MAX, SLOT_IS_PARTITION_MAX};
+        let mut want: Option<(Vec<u64>, Vec<u64>)> = None;
+        for p in [P, SLOT_IS_PARTITION_MAX + 1, DIRECT_MAP_MAX + 1] {
+            let (x, y) = (build_in(&a, p, k, c), build_in(&b, p, k, c));
+            let mut xy = x.clone();
+            xy.merge(&y).unwrap();
+            let back = CellAccumulator::decode(&xy.encode()).unwrap();
+            prop_assert_eq!(&back, &xy);
+            // The wire copy merged again: the same as merging the originals.
+            let mut twice = back.clone();
+            twice.merge(&y).unwrap();
+            let mut direct = xy.clone();
+            direct.merge(&y).unwrap();
+            prop_assert_eq!(&twice, &direct);
+            let got = (sums(&x), sums(&xy));
+            match &want {
+                None => want = Some(got),
+                Some(w) => prop_assert_eq!(w, &got, "P = {}", p),
+            }
+        }
+    }
+}
