@@ -896,6 +896,32 @@ impl TileCells {
         return_log(band.log);
     }
 
+    /// The cells of a table made by [`cells_table`] (moved back; their order is the
+    /// table's, which no sum depends on).
+    fn from_table(table: AccumulatorTable) -> Self {
+        let cells: Vec<(u32, CellAcc)> = match table {
+            AccumulatorTable::Moments(m, _) => m
+                .into_iter()
+                .map(|(k, a)| (k as u32, CellAcc::Moments(a)))
+                .collect(),
+            AccumulatorTable::Mean(m, _) => m
+                .into_iter()
+                .map(|(k, a)| (k as u32, CellAcc::Mean(a)))
+                .collect(),
+        };
+        let index = cells
+            .iter()
+            .enumerate()
+            .map(|(i, (k, _))| (*k, i))
+            .collect();
+        Self {
+            index,
+            cells,
+            last: None,
+            log: Vec::new(),
+        }
+    }
+
     /// The moments accumulator of cell `key`, if it has one.
     fn moments(&self, key: u32) -> Option<&CellAccumulator> {
         match self.index.get(&key).map(|&s| &self.cells[s].1) {
@@ -1712,9 +1738,11 @@ impl<'a> CvJob<'a> {
             let rest = probe_end..samples.end;
             if policy.min_image_gain > f64::NEG_INFINITY || policy.min_fit_gain > f64::NEG_INFINITY
             {
+                // The cells move into the probe's table and back (a copy of every
+                // accumulator was 2 % of a many-lights training pass).
                 let probe = cells_table(
                     self.ctx.kind,
-                    cells.clone(),
+                    std::mem::take(&mut cells),
                     image_variance(&film, width, surrogate),
                 );
                 stopped = probe_stops(&probe, policy);
@@ -1735,6 +1763,7 @@ impl<'a> CvJob<'a> {
                         dropped: false,
                     });
                 }
+                cells = TileCells::from_table(probe);
             }
             let mid = if halves {
                 samples.start + samples.len() as u32 / 2
