@@ -39,9 +39,9 @@
 //!
 //! # Hot loop
 //! [`CellAccumulator::add`] allocates only at a cell's first partition sample (all slots,
-//! or room for 64 appended ones) and, with appended slots, when a partition is first seen;
-//! a partition's first sample in the cell also inserts its index into the sorted `u32`
-//! list. It touches the accumulator itself (the overlapping components' sums are kept
+//! or room for 64 appended ones) and, with appended slots, when a partition is first seen
+//! (which also inserts its index into the sorted `u32` list; with slot = partition it sets
+//! a bit). It touches the accumulator itself (the overlapping components' sums are kept
 //! inside it for small `K`) and the one sampled partition's entry, which holds its count:
 //! slot = partition for `P <= SLOT_IS_PARTITION_MAX`, else found through a direct index map
 //! when `P <= DIRECT_MAP_MAX`, else by binary search with a one-entry cache for runs of
@@ -253,10 +253,14 @@ pub struct CellAccumulator {
     light: [f64; 1 + CHANNELS],
     /// The overlapping components' sums ([`OverlapSums`]).
     over: OverlapSums,
-    /// Sampled partition indices, strictly increasing.
+    /// With `P <= SLOT_IS_PARTITION_MAX`: bit `k` set once partition `k` was sampled (its
+    /// slot is `k`). Setting a bit is a partition's whole first touch, and the bits are the
+    /// sorted list of sampled partitions.
+    sampled: u64,
+    /// With `P > SLOT_IS_PARTITION_MAX`: the sampled partition indices, strictly increasing
+    /// (else empty).
     part_ids: Vec<u32>,
-    /// Per entry of `part_ids`: the storage slot of its moments (the partition itself when
-    /// `P <= SLOT_IS_PARTITION_MAX`).
+    /// Per entry of `part_ids`: the storage slot of its moments.
     part_slots: Vec<u32>,
     /// Per storage slot: `[diag, cross_0..K, b_0..C, g, g_light, count]` with
     /// `g = Σ w λ_k/p`, `g_light` its light-technique part and `count` the accepted samples
@@ -345,13 +349,50 @@ fn overlap_parts_mut(
     (dense, b, g, g_light)
 }
 
+/// The sampled partitions of an accumulator in increasing index order, with their storage
+/// slots ([`CellAccumulator::sorted_slots`]).
+enum SortedSlots<'a> {
+    /// The set bits of [`CellAccumulator`]'s `sampled` (slot = partition).
+    Bits(u64),
+    /// Its sorted index list and the slots.
+    Lists(std::iter::Zip<std::slice::Iter<'a, u32>, std::slice::Iter<'a, u32>>),
+}
+
+impl Iterator for SortedSlots<'_> {
+    type Item = (u32, usize);
+
+    #[inline]
+    fn next(&mut self) -> Option<(u32, usize)> {
+        match self {
+            Self::Bits(b) => {
+                let k = (*b != 0).then(|| b.trailing_zeros())?;
+                *b &= *b - 1;
+                Some((k, k as usize))
+            }
+            Self::Lists(l) => l.next().map(|(&id, &s)| (id, s as usize)),
+        }
+    }
+
+    fn size_hint(&self) -> (usize, Option<usize>) {
+        let n = match self {
+            Self::Bits(b) => b.count_ones() as usize,
+            Self::Lists(l) => l.len(),
+        };
+        (n, Some(n))
+    }
+}
+
+impl ExactSizeIterator for SortedSlots<'_> {}
+
 /// Largest `P` whose accumulators store partition `k`'s moments in slot `k`, all `P` slots
 /// allocated at the cell's first partition sample (≤ 64 entries of ≤ 8 values for `K = 1`,
 /// RGB: 4 KiB, what the appended layout reserved for them). A sample then finds its entry
-/// with no index map, and its count in the same entry: many-lights d5 training (64 lights),
-/// the slot map and the separate count array were two of the four cache misses that made
-/// up ¾ of [`CellAccumulator::add`]'s time, and a partition's first sample in a cell (an
-/// insertion into the appended layout) 6 % of the training pass.
+/// with no index map, and its count in the same entry; a partition's first sample in the
+/// cell sets a bit of a `u64` that is also the sorted list of sampled partitions (hence at
+/// most 64). Many-lights d5 training (64 lights): the slot map and the separate count array
+/// were two of the four cache misses that made up ¾ of [`CellAccumulator::add`]'s time, and
+/// a partition's first sample in a cell (an insertion into the appended layout, then into
+/// the sorted index list) 6 %, then 2 %, of the training pass.
 pub const SLOT_IS_PARTITION_MAX: u32 = 64;
 
 /// Partitions an accumulator with `P > SLOT_IS_PARTITION_MAX` makes room for at its first
@@ -382,11 +423,11 @@ impl PartialEq for CellAccumulator {
             && self.value == o.value
             && self.over.as_slice() == o.over.as_slice()
             && self.light == o.light
-            && self.part_ids == o.part_ids
-            && self.part_slots.iter().zip(&o.part_slots).all(|(&a, &b)| {
-                let (a, b) = (a as usize, b as usize);
-                self.stored_entry(a) == o.stored_entry(b)
-            })
+            && self.sampled_partitions() == o.sampled_partitions()
+            && self
+                .sorted_slots()
+                .zip(o.sorted_slots())
+                .all(|((i, a), (j, b))| i == j && self.stored_entry(a) == o.stored_entry(b))
     }
 }
 
@@ -404,6 +445,7 @@ impl CellAccumulator {
             value: [0.0; 2 * CHANNELS],
             light: [0.0; 1 + CHANNELS],
             over: OverlapSums::zeros(k * (k + 1) / 2 + k * color.channels() + 2 * k),
+            sampled: 0,
             part_ids: Vec::new(),
             part_slots: Vec::new(),
             part_data: Vec::new(),
@@ -467,7 +509,11 @@ impl CellAccumulator {
 
     /// Number of partitions with at least one sample.
     pub fn sampled_partitions(&self) -> usize {
-        self.part_ids.len()
+        if self.slot_is_partition() {
+            self.sampled.count_ones() as usize
+        } else {
+            self.part_ids.len()
+        }
     }
 
     /// Values of a partition's moments `[diag, cross_0..K, b_0..C, g, g_light]`.
@@ -518,11 +564,12 @@ impl CellAccumulator {
     }
 
     /// `(partition, storage slot)` of the sampled partitions in increasing index order.
-    fn sorted_slots(&self) -> impl ExactSizeIterator<Item = (u32, usize)> + '_ {
-        self.part_ids
-            .iter()
-            .zip(&self.part_slots)
-            .map(|(&id, &s)| (id, s as usize))
+    fn sorted_slots(&self) -> SortedSlots<'_> {
+        if self.slot_is_partition() {
+            SortedSlots::Bits(self.sampled)
+        } else {
+            SortedSlots::Lists(self.part_ids.iter().zip(&self.part_slots))
+        }
     }
 
     /// `A_{P+i, P+j}` of the overlapping block.
@@ -568,8 +615,11 @@ impl CellAccumulator {
 
     /// Moments of partition `id`, if it was sampled.
     pub fn partition(&self, id: u32) -> Option<PartitionMoments<'_>> {
-        let i = self.part_ids.binary_search(&id).ok()?;
-        Some(self.moments(id, self.part_slots[i] as usize))
+        if id >= self.layout.partitions {
+            return None;
+        }
+        let slot = self.stored_slot(id)?;
+        Some(self.moments(id, slot))
     }
 
     /// Storage slot of partition `id` (`id < P`), with a zeroed entry the first time it is
@@ -577,13 +627,10 @@ impl CellAccumulator {
     #[inline]
     fn slot_for(&mut self, id: u32) -> usize {
         if self.slot_is_partition() {
-            // The entry's count tells a sampled partition; the entry is read right after.
-            let n = self.slot_len();
-            let at = id as usize * n + n - 1;
-            if self.part_data.get(at).is_some_and(|&c| c != 0.0) {
-                return id as usize;
+            if self.sampled & (1 << id) == 0 {
+                self.insert_partition(id);
             }
-            return self.insert_partition(id);
+            return id as usize;
         }
         match self.slot_map.get(id as usize) {
             Some(&s) if s != u32::MAX => return s as usize,
@@ -598,13 +645,7 @@ impl CellAccumulator {
     #[inline]
     fn stored_slot(&self, id: u32) -> Option<usize> {
         if self.slot_is_partition() {
-            let n = self.slot_len();
-            let at = id as usize * n + n - 1;
-            return self
-                .part_data
-                .get(at)
-                .is_some_and(|&c| c != 0.0)
-                .then_some(id as usize);
+            return (id < 64 && self.sampled & (1 << id) != 0).then_some(id as usize);
         }
         match self.slot_map.get(id as usize) {
             Some(&s) => (s != u32::MAX).then_some(s as usize),
@@ -616,20 +657,14 @@ impl CellAccumulator {
         }
     }
 
-    /// Lists partition `id` (not yet sampled) in slot `id`, allocating all `P` slots the
-    /// first time ([`SLOT_IS_PARTITION_MAX`]).
+    /// Marks partition `id` (`id < P <= SLOT_IS_PARTITION_MAX`, not yet sampled) sampled,
+    /// allocating all `P` slots the first time.
     #[cold]
-    fn insert_partition(&mut self, id: u32) -> usize {
+    fn insert_partition(&mut self, id: u32) {
         if self.part_data.is_empty() {
-            let p = self.layout.partitions as usize;
-            self.part_data = vec![0.0; p * self.slot_len()];
-            self.part_ids.reserve(p);
-            self.part_slots.reserve(p);
+            self.part_data = vec![0.0; self.layout.partitions as usize * self.slot_len()];
         }
-        let i = self.part_ids.partition_point(|&x| x < id);
-        self.part_ids.insert(i, id);
-        self.part_slots.insert(i, id);
-        id as usize
+        self.sampled |= 1 << id;
     }
 
     #[cold]
@@ -887,7 +922,7 @@ impl CellAccumulator {
         {
             *a += b;
         }
-        if other.part_ids.is_empty() {
+        if other.sampled_partitions() == 0 {
             return Ok(());
         }
         // In place: a partition both have is summed where `self` stores it (`p + q`, the
@@ -914,7 +949,8 @@ impl CellAccumulator {
                     }
                 }
                 None if self.slot_is_partition() => {
-                    let s = self.insert_partition(id);
+                    self.insert_partition(id);
+                    let s = id as usize;
                     self.part_data[s * n..(s + 1) * n].copy_from_slice(src);
                 }
                 None => {
@@ -1000,7 +1036,7 @@ impl CellAccumulator {
         {
             out.extend_from_slice(&v.to_le_bytes());
         }
-        out.extend_from_slice(&(self.part_ids.len() as u32).to_le_bytes());
+        out.extend_from_slice(&(self.sampled_partitions() as u32).to_le_bytes());
         for (id, slot) in self.sorted_slots() {
             out.extend_from_slice(&id.to_le_bytes());
             out.extend_from_slice(&self.count(slot).to_le_bytes());
@@ -1016,7 +1052,7 @@ impl CellAccumulator {
         HEADER_LEN
             + 8 * (3 * self.color.channels() + 1 + self.over.as_slice().len())
             + 4
-            + self.part_ids.len() * (12 + 8 * self.stride())
+            + self.sampled_partitions() * (12 + 8 * self.stride())
     }
 
     /// Decodes and validates an accumulator; never panics on arbitrary bytes.
@@ -1121,7 +1157,8 @@ impl CellAccumulator {
             // Increasing ids, none stored yet: the slot is new (a merge into an empty
             // accumulator would add to zeros, which is not a copy for `-0.0`).
             let s = if acc.slot_is_partition() {
-                acc.insert_partition(id)
+                acc.insert_partition(id);
+                id as usize
             } else {
                 acc.part_slots.push(acc.part_ids.len() as u32);
                 acc.part_ids.push(id);
