@@ -615,9 +615,6 @@ impl CellAccumulator {
 
     /// Moments of partition `id`, if it was sampled.
     pub fn partition(&self, id: u32) -> Option<PartitionMoments<'_>> {
-        if id >= self.layout.partitions {
-            return None;
-        }
         let slot = self.stored_slot(id)?;
         Some(self.moments(id, slot))
     }
@@ -645,7 +642,8 @@ impl CellAccumulator {
     #[inline]
     fn stored_slot(&self, id: u32) -> Option<usize> {
         if self.slot_is_partition() {
-            return (id < 64 && self.sampled & (1 << id) != 0).then_some(id as usize);
+            return (id < self.layout.partitions && self.sampled & (1 << id) != 0)
+                .then_some(id as usize);
         }
         match self.slot_map.get(id as usize) {
             Some(&s) => (s != u32::MAX).then_some(s as usize),
@@ -692,16 +690,6 @@ impl CellAccumulator {
         };
         self.last = (id, slot as u32);
         slot
-    }
-
-    fn rebuild_slot_map(&mut self) {
-        if !self.slot_map.is_empty() {
-            self.slot_map.fill(u32::MAX);
-            for (&id, &s) in self.part_ids.iter().zip(&self.part_slots) {
-                self.slot_map[id as usize] = s;
-            }
-        }
-        self.last = (u32::MAX, 0);
     }
 
     /// Adds one training sample with weight `weight` (see [`training_weight`]) and RGB value
@@ -926,9 +914,9 @@ impl CellAccumulator {
             return Ok(());
         }
         // In place: a partition both have is summed where `self` stores it (`p + q`, the
-        // addition a merge-join of the two sorted lists makes), one only `other` has is
-        // appended (its entry copied, as a merge-join copies it) and its index inserted into
-        // the sorted list. Same sums, counts and sorted view (equality, encoding) as a
+        // addition a merge-join of the two sorted lists makes), one only `other` has gets a
+        // new slot ([`Self::slot_for`]: appended, or its own) with its entry copied, as a
+        // merge-join copies it. Same sums, counts and sorted view (equality, encoding) as a
         // merge-join, without rebuilding every list on each merge: the band and tile tables of
         // a training phase are merged cell by cell, mostly into partitions already present.
         let n = self.slot_len();
@@ -948,20 +936,11 @@ impl CellAccumulator {
                         *p += q;
                     }
                 }
-                None if self.slot_is_partition() => {
-                    self.insert_partition(id);
-                    let s = id as usize;
-                    self.part_data[s * n..(s + 1) * n].copy_from_slice(src);
-                }
+                // A new slot (zeroed), then a copy: not an addition to zeros, which is
+                // not a copy for `-0.0`.
                 None => {
-                    let s = self.part_data.len() / n;
-                    let at = self.part_ids.partition_point(|&x| x < id);
-                    self.part_ids.insert(at, id);
-                    self.part_slots.insert(at, s as u32);
-                    self.part_data.extend_from_slice(src);
-                    if let Some(m) = self.slot_map.get_mut(id as usize) {
-                        *m = s as u32;
-                    }
+                    let s = self.slot_for(id);
+                    self.part_data[s * n..(s + 1) * n].copy_from_slice(src);
                 }
             }
         }
@@ -1154,23 +1133,14 @@ impl CellAccumulator {
                 entry.push(if present { r.finite_f64()? } else { 0.0 });
             }
             entry.push(count as f64);
-            // Increasing ids, none stored yet: the slot is new (a merge into an empty
-            // accumulator would add to zeros, which is not a copy for `-0.0`).
-            let s = if acc.slot_is_partition() {
-                acc.insert_partition(id);
-                id as usize
-            } else {
-                acc.part_slots.push(acc.part_ids.len() as u32);
-                acc.part_ids.push(id);
-                acc.part_data.resize(acc.part_data.len() + stride + 1, 0.0);
-                acc.part_ids.len() - 1
-            };
+            // Increasing ids, none stored yet: the slot is new, and the entry is copied into
+            // it (an addition to its zeros would not be a copy for `-0.0`).
+            let s = acc.slot_for(id);
             acc.part_data[s * (stride + 1)..(s + 1) * (stride + 1)].copy_from_slice(&entry);
         }
         if r.pos != bytes.len() {
             return Err(CellError::Trailing(bytes.len() - r.pos));
         }
-        acc.rebuild_slot_map();
         Ok(acc)
     }
 }

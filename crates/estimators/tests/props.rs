@@ -44,26 +44,7 @@ fn smp() -> impl Strategy<Value = Smp> {
 }
 
 fn build(samples: &[Smp], color: ColorMode) -> CellAccumulator {
-    let mut acc = CellAccumulator::new(layout(), color);
-    for s in samples {
-        let technique = if s.light {
-            Technique::Light
-        } else {
-            Technique::Bsdf
-        };
-        acc.add_from(
-            technique,
-            s.w,
-            s.v,
-            &CvSample {
-                pdf: s.pdf,
-                partition: s.part,
-                overlapping: &s.lam,
-            },
-        )
-        .unwrap();
-    }
-    acc
+    build_in(samples, P, K, color)
 }
 
 fn color() -> impl Strategy<Value = ColorMode> {
