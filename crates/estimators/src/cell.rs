@@ -539,6 +539,12 @@ impl CellAccumulator {
         &self.part_data[slot * n..(slot + 1) * n]
     }
 
+    /// [`Self::stored_entry`], mutable.
+    fn stored_entry_mut(&mut self, slot: usize) -> &mut [f64] {
+        let n = self.slot_len();
+        &mut self.part_data[slot * n..(slot + 1) * n]
+    }
+
     /// The moments of storage slot `slot`.
     fn entry(&self, slot: usize) -> &[f64] {
         &self.stored_entry(slot)[..self.stride()]
@@ -865,6 +871,8 @@ impl CellAccumulator {
             g_over[i] += wri;
         }
         if let Some((id, rk)) = part {
+            // [`Self::stored_entry_mut`] with the stride from this body's constant `k` and
+            // `c` (the layout's), so the loops below unroll.
             let stride = 3 + k + c;
             let slot = self.slot_for(id);
             let d = &mut self.part_data[slot * (stride + 1)..(slot + 1) * (stride + 1)];
@@ -931,8 +939,7 @@ impl CellAccumulator {
             let src = other.stored_entry(j);
             match self.stored_slot(id) {
                 Some(s) => {
-                    let dst = &mut self.part_data[s * n..(s + 1) * n];
-                    for (p, q) in dst.iter_mut().zip(src) {
+                    for (p, q) in self.stored_entry_mut(s).iter_mut().zip(src) {
                         *p += q;
                     }
                 }
@@ -940,7 +947,7 @@ impl CellAccumulator {
                 // not a copy for `-0.0`.
                 None => {
                     let s = self.slot_for(id);
-                    self.part_data[s * n..(s + 1) * n].copy_from_slice(src);
+                    self.stored_entry_mut(s).copy_from_slice(src);
                 }
             }
         }
@@ -1136,7 +1143,7 @@ impl CellAccumulator {
             // Increasing ids, none stored yet: the slot is new, and the entry is copied into
             // it (an addition to its zeros would not be a copy for `-0.0`).
             let s = acc.slot_for(id);
-            acc.part_data[s * (stride + 1)..(s + 1) * (stride + 1)].copy_from_slice(&entry);
+            acc.stored_entry_mut(s).copy_from_slice(&entry);
         }
         if r.pos != bytes.len() {
             return Err(CellError::Trailing(bytes.len() - r.pos));

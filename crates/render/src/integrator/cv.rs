@@ -2256,8 +2256,10 @@ fn split_half_gain(
 }
 
 /// Training cells (a tile's, or none) as a table keyed by cell (of the job's kind, also when
-/// empty), with the tile's image variance for moments.
+/// empty), with the tile's image variance for moments. `cells` has no pending log: a tile's
+/// cells are bands absorbed in order ([`InOrderFold`]), their logs added on the way.
 fn cells_table(kind: Kind, cells: TileCells, image: f64) -> AccumulatorTable {
+    debug_assert!(cells.log.is_empty(), "a table would drop logged samples");
     match kind {
         Kind::PerLight => {
             let mut m = BTreeMap::new();
