@@ -822,8 +822,9 @@ fn return_log(mut log: Vec<TrainRecord>) {
     });
 }
 
-/// Training accumulators of a band or a tile, in first-touch order, and a
-/// band's log of samples not yet added.
+/// Training accumulators of a band or a tile (in first-touch order, or in key order after a
+/// probe's round trip through [`cells_table`]: no sum depends on it), and a band's log of
+/// samples not yet added.
 ///
 /// A band of a training tile logs its samples and the tile adds the bands' logs in band order
 /// to one set of cells ([`InOrderFold`]), rather than each band accumulating its own cells and
