@@ -278,6 +278,21 @@ pub struct CellAccumulator {
     slot_map: Vec<u32>,
 }
 
+/// A hint to load the cache line of `x` (no architectural effect; nothing elsewhere than on
+/// `x86_64`).
+#[inline(always)]
+fn prefetch_read<T>(x: &T) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
+        // SAFETY: a prefetch accesses no memory architecturally (it cannot fault), and `x`
+        // is a valid reference anyway.
+        unsafe { _mm_prefetch::<_MM_HINT_T0>((x as *const T).cast()) };
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = x;
+}
+
 /// Values [`OverlapSums`] keeps in the accumulator itself: the sums of a layout with one
 /// overlapping component (the BSDF) in RGB take 6.
 const INLINE_OVERLAP: usize = 8;
@@ -623,6 +638,36 @@ impl CellAccumulator {
     pub fn partition(&self, id: u32) -> Option<PartitionMoments<'_>> {
         let slot = self.stored_slot(id)?;
         Some(self.moments(id, slot))
+    }
+
+    /// Asks the CPU to start loading partition `id`'s stored moments, ahead of an
+    /// [`add_from`](Self::add_from) of a sample in it; changes nothing else. A no-op where
+    /// the partition has no storage yet, or where finding its slot would need a search.
+    ///
+    /// A training sample's partition entry is the one load of its update that misses the
+    /// caches: a tile's cells hold far more entries than the caches (many-lights d5: that
+    /// load was ≈ 70 % of `add_from`'s time). A caller adding a batch of samples prefetches
+    /// the batch's entries first, and their misses overlap instead of queueing one by one.
+    #[inline]
+    pub fn prefetch_partition(&self, id: u32) {
+        let slot = if self.slot_is_partition() {
+            // All slots exist once the first partition was sampled.
+            if id >= self.layout.partitions {
+                return;
+            }
+            id as usize
+        } else {
+            match self.slot_map.get(id as usize) {
+                Some(&s) if s != u32::MAX => s as usize,
+                _ => return,
+            }
+        };
+        let len = self.slot_len();
+        if let Some(entry) = self.part_data.get(slot * len..(slot + 1) * len) {
+            // The count (the last value) may sit on the next cache line.
+            prefetch_read(&entry[0]);
+            prefetch_read(&entry[len - 1]);
+        }
     }
 
     /// Storage slot of partition `id` (`id < P`), with a zeroed entry the first time it is

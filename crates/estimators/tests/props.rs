@@ -328,13 +328,20 @@ proptest! {
     /// `P <= SLOT_IS_PARTITION_MAX`, appended slots found through a direct map up to
     /// `DIRECT_MAP_MAX`, by binary search above) and its two of storing the overlapping sums
     /// (inline for small `K`, else allocated) keep the same sums, bit for bit, through
-    /// accumulation, merges and the wire.
+    /// accumulation, merges and the wire; [`CellAccumulator::prefetch_partition`] works on
+    /// each.
     #[test]
     fn every_storage_layout_keeps_the_same_sums(a in prop::collection::vec(smp(), 0..40), b in prop::collection::vec(smp(), 0..40), c in color(), k in 1..=K) {
         use estimators::cell::{DIRECT_MAP_MAX, SLOT_IS_PARTITION_MAX};
         let mut want: Option<(Vec<u64>, Vec<u64>)> = None;
         for p in [P, SLOT_IS_PARTITION_MAX + 1, DIRECT_MAP_MAX + 1] {
             let (x, y) = (build_in(&a, p, k, c), build_in(&b, p, k, c));
+            // A prefetch hint is safe for any partition id, sampled or not, in range or
+            // not, and on an accumulator without partition storage.
+            for id in (0..p + 2).chain([u32::MAX]) {
+                x.prefetch_partition(id);
+                CellAccumulator::new(x.layout(), c).prefetch_partition(id);
+            }
             let mut xy = x.clone();
             xy.merge(&y).unwrap();
             let back = CellAccumulator::decode(&xy.encode()).unwrap();

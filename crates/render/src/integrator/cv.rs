@@ -794,6 +794,9 @@ const TRAIN_LOG_MAX: usize = 1 << 20;
 /// Largest record log (capacity, records: 32 MiB) a thread keeps for its next training band.
 const POOLED_LOG_MAX: usize = 1 << 19;
 
+/// Samples whose partition entries [`TileCells::add_records`] prefetches before adding them.
+const PREFETCH_BATCH: usize = 32;
+
 thread_local! {
     /// A finished band's record log, emptied, for this thread's next band: a band logs
     /// ≈ 10–15 MiB (16 rows of a [`TRAIN_TILE`] tile, ≈ 8 records per path sample), and a new
@@ -855,29 +858,52 @@ impl TileCells {
     }
 
     /// Adds logged samples to the cells, in order.
+    ///
+    /// In batches of [`PREFETCH_BATCH`]: the batch's cells are found (and made, in the
+    /// samples' order) and their partition entries prefetched
+    /// ([`CellAccumulator::prefetch_partition`]), then the samples are added in order. The
+    /// sums are the same; the entries' cache misses overlap.
     fn add_records(&mut self, log: &[TrainRecord], ctx: &CvContext<'_>) {
-        for r in log {
-            let partition = r.partition & !BSDF_TECHNIQUE;
-            let selected = (partition != NO_PARTITION).then_some((partition, r.lambda_partition));
-            match self.get(r.key, ctx) {
-                // A `per_light_cv` vertex: its selected light (`lambda_partition` = `1/c`).
-                CellAcc::Mean(acc) => {
-                    acc.record(r.weight, selected, r.value);
+        let mut slots = [0usize; PREFETCH_BATCH];
+        for batch in log.chunks(PREFETCH_BATCH) {
+            for (r, slot) in batch.iter().zip(&mut slots) {
+                *slot = self.slot(r.key, ctx);
+                let partition = r.partition & !BSDF_TECHNIQUE;
+                if partition != NO_PARTITION
+                    && let CellAcc::Moments(acc) = &self.cells[*slot].1
+                {
+                    acc.prefetch_partition(partition);
                 }
-                CellAcc::Moments(acc) => {
-                    let lb = [r.lambda_bsdf];
-                    let sample = CvSample {
-                        pdf: r.pdf,
-                        partition: selected,
-                        overlapping: &lb,
-                    };
-                    let technique = if r.partition & BSDF_TECHNIQUE != 0 {
-                        Technique::Bsdf
-                    } else {
-                        Technique::Light
-                    };
-                    let _ = acc.add_from(technique, r.weight, r.value, &sample);
-                }
+            }
+            for (r, &slot) in batch.iter().zip(&slots) {
+                self.add_record(slot, r);
+            }
+        }
+    }
+
+    /// Adds one logged sample to the cell in `slot`.
+    #[inline]
+    fn add_record(&mut self, slot: usize, r: &TrainRecord) {
+        let partition = r.partition & !BSDF_TECHNIQUE;
+        let selected = (partition != NO_PARTITION).then_some((partition, r.lambda_partition));
+        match &mut self.cells[slot].1 {
+            // A `per_light_cv` vertex: its selected light (`lambda_partition` = `1/c`).
+            CellAcc::Mean(acc) => {
+                acc.record(r.weight, selected, r.value);
+            }
+            CellAcc::Moments(acc) => {
+                let lb = [r.lambda_bsdf];
+                let sample = CvSample {
+                    pdf: r.pdf,
+                    partition: selected,
+                    overlapping: &lb,
+                };
+                let technique = if r.partition & BSDF_TECHNIQUE != 0 {
+                    Technique::Bsdf
+                } else {
+                    Technique::Light
+                };
+                let _ = acc.add_from(technique, r.weight, r.value, &sample);
             }
         }
     }
@@ -933,7 +959,14 @@ impl TileCells {
 
     #[inline]
     fn get(&mut self, key: u32, ctx: &CvContext<'_>) -> &mut CellAcc {
-        let slot = match self.last {
+        let slot = self.slot(key, ctx);
+        &mut self.cells[slot].1
+    }
+
+    /// Index in `cells` of cell `key`'s accumulator, made (empty) if it has none.
+    #[inline]
+    fn slot(&mut self, key: u32, ctx: &CvContext<'_>) -> usize {
+        match self.last {
             Some((k, s)) if k == key => s,
             _ => {
                 let n = self.cells.len();
@@ -950,8 +983,7 @@ impl TileCells {
                 self.last = Some((key, s));
                 s
             }
-        };
-        &mut self.cells[slot].1
+        }
     }
 }
 
