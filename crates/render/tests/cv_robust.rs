@@ -537,7 +537,7 @@ fn training_table_bits_do_not_depend_on_threads() {
     use render::integrator::cv::CvJob;
     use render::{RenderScene, RenderSettings, TileRect};
 
-    // One 64 × 128 training tile: eight 16-row bands.
+    // One 64 × 128 training tile: 64 bands of `BAND_ROWS` (2) rows.
     let s = load("scenes/many-lights/scene.json", 64, 128);
     let estimators = [
         Estimator::Cms(CmsOptions::default()),

@@ -787,7 +787,7 @@ const NO_PARTITION: u32 = u32::MAX >> 1;
 const BSDF_TECHNIQUE: u32 = 1 << 31;
 
 /// Records a band logs at most before adding them to its own cells (64 MiB; a default job's
-/// band logs a quarter of that). The spill points depend only on the record count, so the
+/// band logs ≈ 32 000). The spill points depend only on the record count, so the
 /// sums stay the same for any thread count.
 const TRAIN_LOG_MAX: usize = 1 << 20;
 
@@ -799,9 +799,10 @@ const PREFETCH_BATCH: usize = 32;
 
 thread_local! {
     /// A finished band's record log, emptied, for this thread's next band: a band logs
-    /// ≈ 10–15 MiB (16 rows of a [`TRAIN_TILE`] tile, ≈ 8 records per path sample), and a new
-    /// log grew to that size by reallocations and copies and faulted in every page
-    /// (many-lights d5, 256², 16 training spp, one thread: 0.1 s of 1.4 s).
+    /// ≈ 1–2 MiB ([`BAND_ROWS`] rows of a [`TRAIN_TILE`] tile, 16 training spp, ≈ 8 records
+    /// per path sample), and a new log grew to its size by reallocations and copies and
+    /// faulted in every page (with 16-row bands, many-lights d5, 256², one thread: 0.1 s of
+    /// 1.4 s).
     static SPARE_LOG: std::cell::RefCell<Vec<TrainRecord>> = const { std::cell::RefCell::new(Vec::new()) };
 }
 
@@ -1986,7 +1987,14 @@ impl Pixels {
 /// at all (each pixel sums its own samples in index order). A worker renders a 128-pixel
 /// training tile on all its cores, which keeps the few large tasks of a training phase from
 /// leaving cores idle before the barrier.
-pub const BAND_ROWS: u32 = 16;
+///
+/// The bands' logs concatenated in band order are the tile's samples in row-major pixel
+/// order whatever the band height, so the table depends on it only where a band's log spills
+/// ([`TRAIN_LOG_MAX`] records: above ≈ 500 training spp with 2 rows). Two rows keep a band's
+/// log (≈ 2 MiB at 16 training spp) in the core's L2 until the fold reads it back: with
+/// 16-row bands (≈ 16 MiB) those reads came from memory, and a training pass took 4–7 %
+/// longer (colour-lamp and many-lights d5, one thread; same bits).
+pub const BAND_ROWS: u32 = 2;
 
 /// Rows of the bands of a surrogate or render tile. Their pixels do not depend on the bands
 /// (each pixel sums its own samples in index order) and they carry no cells, so the bands can
@@ -2074,7 +2082,8 @@ impl InOrderFold {
 
 impl Banded {
     /// Renders `tile` as bands of full-width rows in parallel: [`BAND_ROWS`] rows for a
-    /// training tile (its table depends on them), [`PIXEL_BAND_ROWS`] otherwise. A training
+    /// training tile (its table depends on them where a log spills), [`PIXEL_BAND_ROWS`]
+    /// otherwise. A training
     /// tile hands each band's cells to `fold`. The samples are added to `start` (the tile's
     /// film of its earlier samples) when given.
     fn run(
@@ -2821,7 +2830,7 @@ mod tests {
             }
         };
         let whole = table(&job, 1);
-        // A band of 16 × 32 pixels × 16 training samples logs tens of thousands of records.
+        // A band of 2 × 32 pixels × 16 training samples logs thousands of records.
         job.ctx.train_log_max = 1000;
         let spilled = table(&job, 1);
         assert_eq!(
