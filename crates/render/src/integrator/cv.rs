@@ -1737,10 +1737,10 @@ impl<'a> CvJob<'a> {
         // Training `range` on top of the tile's film `start`: every band's samples, added in
         // band order (see [`BAND_ROWS`]), and the film.
         let record = |range: Range<u32>, start: Option<&Film>, pixels: Pixels| {
-            let fold = InOrderFold::default();
+            let fold = InOrderFold::new(TileCells::default());
             let input = PhaseInput { pixels, ..input };
             let t = Banded::run(&self.ctx, tile, range, input, Some(&fold), start);
-            (fold.finish(), t)
+            (fold.finish().unwrap_or_default(), t)
         };
         // `path`'s own samples for `pixels`: no records, none of the CV's extra rays.
         let plain = |pixels: Pixels| PhaseInput {
@@ -2013,42 +2013,47 @@ struct Banded {
     cell_id: Vec<f32>,
 }
 
-/// Adds the training bands of a tile to one set of cells in band order while the bands
-/// render in any order: a finished band is queued, and whichever thread finds the next band
-/// in line adds it (and any queued successors) while the others go on rendering.
-#[derive(Default)]
-struct InOrderFold {
-    state: std::sync::Mutex<FoldState>,
+/// Folds items numbered `0, 1, 2, …` into one accumulator in number order while they are
+/// produced in any order: a finished item is queued, and whichever thread finds the next
+/// item in line adds it (and any queued successors) while the others go on producing. The
+/// fold's result is the same for any thread count; an item is dropped as soon as it is
+/// added.
+///
+/// Used for a training tile's bands (their logs added to the tile's cells, [`TileCells`])
+/// and for a job's training tiles (their tables merged into the job's in row-major tile
+/// order).
+struct InOrder<T, A> {
+    state: std::sync::Mutex<InOrderState<T, A>>,
 }
 
-struct FoldState {
-    /// The band to add next.
+struct InOrderState<T, A> {
+    /// The item to add next.
     next: usize,
-    /// Finished bands waiting for their predecessors.
-    pending: BTreeMap<usize, TileCells>,
-    /// The tile's cells; `None` while a thread is adding to them.
-    cells: Option<TileCells>,
+    /// Finished items waiting for their predecessors.
+    pending: BTreeMap<usize, T>,
+    /// The accumulator; `None` while a thread is adding to it.
+    acc: Option<A>,
 }
 
-impl Default for FoldState {
-    fn default() -> Self {
+impl<T, A> InOrder<T, A> {
+    fn new(acc: A) -> Self {
         Self {
-            next: 0,
-            pending: BTreeMap::new(),
-            cells: Some(TileCells::default()),
+            state: std::sync::Mutex::new(InOrderState {
+                next: 0,
+                pending: BTreeMap::new(),
+                acc: Some(acc),
+            }),
         }
     }
-}
 
-impl InOrderFold {
-    /// Hands over band `band`'s cells and log.
-    fn submit(&self, band: usize, cells: TileCells, ctx: &CvContext<'_>) {
+    /// Hands over item `index`; `add` adds an item to the accumulator.
+    fn submit(&self, index: usize, item: T, add: impl Fn(&mut A, T)) {
         let lock = || self.state.lock().unwrap_or_else(|e| e.into_inner());
         let mut st = lock();
-        st.pending.insert(band, cells);
+        st.pending.insert(index, item);
         loop {
-            // Another thread is adding: it takes this band too when it comes next in line.
-            let Some(mut acc) = st.cells.take() else {
+            // Another thread is adding: it takes this item too when it comes next in line.
+            let Some(mut acc) = st.acc.take() else {
                 return;
             };
             let mut batch = Vec::new();
@@ -2060,25 +2065,28 @@ impl InOrderFold {
                 st.next += 1;
             }
             if batch.is_empty() {
-                st.cells = Some(acc);
+                st.acc = Some(acc);
                 return;
             }
             drop(st);
             for b in batch {
-                acc.absorb(b, ctx);
+                add(&mut acc, b);
             }
             st = lock();
-            st.cells = Some(acc);
+            st.acc = Some(acc);
         }
     }
 
-    /// The tile's cells once every band was submitted.
-    fn finish(self) -> TileCells {
+    /// The accumulator once every item was submitted (`None` only after a panic in `add`).
+    fn finish(self) -> Option<A> {
         let st = self.state.into_inner().unwrap_or_else(|e| e.into_inner());
         debug_assert!(st.pending.is_empty());
-        st.cells.unwrap_or_default()
+        st.acc
     }
 }
+
+/// A training tile's bands, added to its cells in band order ([`TileCells::absorb`]).
+type InOrderFold = InOrder<TileCells, TileCells>;
 
 impl Banded {
     /// Renders `tile` as bands of full-width rows in parallel: [`BAND_ROWS`] rows for a
@@ -2124,7 +2132,9 @@ impl Banded {
                 });
                 let mut out = run_tile(ctx, b, samples.clone(), input, base);
                 if let Some(f) = fold {
-                    f.submit(i, std::mem::take(&mut out.cells), ctx);
+                    f.submit(i, std::mem::take(&mut out.cells), |acc, band| {
+                        acc.absorb(band, ctx)
+                    });
                 }
                 out
             })
@@ -2168,23 +2178,59 @@ fn traces_as_path(ctx: &CvContext<'_>, kind: PhaseKind, table: Option<&Coefficie
     }
 }
 
-/// Training tables merged in the given (canonical) order: the first is the start, each
-/// further one is merged into it; no table gives the empty table of the job's kind.
-fn merge_in_order(
-    kind: Kind,
-    tables: impl IntoIterator<Item = AccumulatorTable>,
-) -> Result<AccumulatorTable, RenderError> {
-    let mut tables = tables.into_iter();
-    let Some(mut merged) = tables.next() else {
-        return Ok(cells_table(kind, TileCells::default(), 0.0));
-    };
-    for t in tables {
-        merged.merge(&t).map_err(|_| RenderError::InvalidSetting {
-            field: "estimator",
-            reason: "training accumulators of different layouts",
-        })?;
+/// A job's training tiles, merged in row-major tile order ([`InOrder`]).
+struct TrainFold {
+    film: Film,
+    rays: u64,
+    stopped: u32,
+    dropped: u32,
+    /// The tiles' tables merged so far (`None` before the first).
+    table: Option<AccumulatorTable>,
+    /// The first error in tile order; the tiles after it are not added.
+    error: Option<RenderError>,
+}
+
+impl TrainFold {
+    /// Nothing merged yet: the job's `film` so far.
+    fn new(film: Film) -> Self {
+        Self {
+            film,
+            rays: 0,
+            stopped: 0,
+            dropped: 0,
+            table: None,
+            error: None,
+        }
     }
-    Ok(merged)
+
+    /// Adds the next tile.
+    fn add(&mut self, tile: Result<TrainTile, RenderError>) {
+        if self.error.is_some() {
+            return;
+        }
+        let o = match tile {
+            Ok(o) => o,
+            Err(e) => {
+                self.error = Some(e);
+                return;
+            }
+        };
+        self.stopped += u32::from(o.stopped);
+        self.dropped += u32::from(o.dropped);
+        self.film.merge(&o.out.film);
+        self.rays += o.out.rays;
+        match &mut self.table {
+            None => self.table = Some(o.cells),
+            Some(t) => {
+                if t.merge(&o.cells).is_err() {
+                    self.error = Some(RenderError::InvalidSetting {
+                        field: "estimator",
+                        reason: "training accumulators of different layouts",
+                    });
+                }
+            }
+        }
+    }
 }
 
 /// The image variance of a training tile's film, in the units of its cells' sums (see
@@ -2560,26 +2606,35 @@ pub fn render_estimator_image(
 
     // ---- train ----
     let t0 = Instant::now();
+    // Each tile's table is merged into the job's as soon as the tiles before it are, and
+    // dropped: the job holds its merged table and the tiles in flight, not every tile's.
     let train_tiles = TileRect::grid(rs.width, rs.height, TRAIN_TILE);
-    let outs = par_tiles(&pool, &train_tiles, &ph.train, &tick, |t| {
-        job.train_tile(t, ph.train.clone(), surrogate.as_deref())
+    let fold = InOrder::new(TrainFold::new(film));
+    pool.install(|| {
+        train_tiles.par_iter().enumerate().for_each(|(i, &t)| {
+            let out = job.train_tile(t, ph.train.clone(), surrogate.as_deref());
+            tick(t.pixel_count() * ph.train.len() as u64);
+            fold.submit(i, out, TrainFold::add);
+        })
     });
+    let trained = fold.finish().ok_or(RenderError::InvalidSetting {
+        field: "estimator",
+        reason: "a training tile's merge panicked",
+    })?;
     timings.train = t0.elapsed().as_secs_f64();
-
-    // ---- merge in canonical tile order, solve ----
-    let t0 = Instant::now();
-    let mut tables = Vec::with_capacity(outs.len());
-    let (training_tiles, mut training_tiles_stopped) = (outs.len() as u32, 0);
-    let mut training_tiles_dropped = 0;
-    for o in outs {
-        let o = o?;
-        training_tiles_stopped += u32::from(o.stopped);
-        training_tiles_dropped += u32::from(o.dropped);
-        film.merge(&o.out.film);
-        rays += o.out.rays;
-        tables.push(o.cells);
+    if let Some(e) = trained.error {
+        return Err(e);
     }
-    let merged = merge_in_order(job.ctx.kind, tables)?;
+    film = trained.film;
+    rays += trained.rays;
+    let training_tiles = train_tiles.len() as u32;
+    let (training_tiles_stopped, training_tiles_dropped) = (trained.stopped, trained.dropped);
+
+    // ---- solve ----
+    let t0 = Instant::now();
+    let merged = trained
+        .table
+        .unwrap_or_else(|| cells_table(job.ctx.kind, TileCells::default(), 0.0));
     let solved = merged.solve(&job.solve_policy(), opts.threads.max(1));
     let table = job.coefficient_table(&solved.coefficients)?;
     let layout = job.layout();
