@@ -886,17 +886,19 @@ impl TileCells {
     #[inline]
     fn add_record(&mut self, slot: usize, r: &TrainRecord) {
         let partition = r.partition & !BSDF_TECHNIQUE;
-        let selected = (partition != NO_PARTITION).then_some((partition, r.lambda_partition));
+        let selected = || (partition != NO_PARTITION).then_some((partition, r.lambda_partition));
         match &mut self.cells[slot].1 {
             // A `per_light_cv` vertex: its selected light (`lambda_partition` = `1/c`).
             CellAcc::Mean(acc) => {
-                acc.record(r.weight, selected, r.value);
+                acc.record(r.weight, selected(), r.value);
             }
             CellAcc::Moments(acc) => {
                 let lb = [r.lambda_bsdf];
+                // Built in place (an `Option` made first and copied in was read back across
+                // its two stores: a store-forwarding stall per sample).
                 let sample = CvSample {
                     pdf: r.pdf,
-                    partition: selected,
+                    partition: selected(),
                     overlapping: &lb,
                 };
                 let technique = if r.partition & BSDF_TECHNIQUE != 0 {
