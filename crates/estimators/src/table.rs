@@ -307,10 +307,21 @@ struct Node<'a> {
     odd: Option<Cow<'a, CellAccumulator>>,
 }
 
-impl Node<'_> {
+impl<'a> Node<'a> {
+    /// A parent's node with its first child's sums: the child's own (borrowed where the child
+    /// borrows them, so a chain of only children shares one accumulator; copied on the first
+    /// [`absorb`](Self::absorb) of a sibling).
+    fn first_child(child: &Node<'a>) -> Self {
+        Node {
+            merged: child.merged.clone(),
+            even: child.even.clone(),
+            odd: child.odd.clone(),
+        }
+    }
+
     /// Adds a child's sums (keys in order, so the sums are reproducible). A layout
     /// mismatch (not within one job) drops the child's half, as [`pair_halves`] does.
-    fn absorb(&mut self, child: &Node<'_>) {
+    fn absorb(&mut self, child: &Node<'a>) {
         let _ = self.merged.to_mut().merge(&child.merged);
         for (mine, theirs) in [(&mut self.even, &child.even), (&mut self.odd, &child.odd)] {
             if let Some(t) = theirs {
@@ -318,7 +329,7 @@ impl Node<'_> {
                     Some(m) => {
                         let _ = m.to_mut().merge(t);
                     }
-                    None => *mine = Some(Cow::Owned(t.as_ref().clone())),
+                    None => *mine = Some(t.clone()),
                 }
             }
         }
@@ -387,12 +398,7 @@ fn solve_hierarchy(
             match up.get_mut(&parent(k)) {
                 Some(node) => node.absorb(child),
                 None => {
-                    let node = Node {
-                        merged: Cow::Owned(child.merged.as_ref().clone()),
-                        even: child.even.as_deref().map(|a| Cow::Owned(a.clone())),
-                        odd: child.odd.as_deref().map(|a| Cow::Owned(a.clone())),
-                    };
-                    up.insert(parent(k), node);
+                    up.insert(parent(k), Node::first_child(child));
                 }
             }
         }
