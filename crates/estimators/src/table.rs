@@ -197,11 +197,28 @@ pub fn merge_tables<T: MergeRecord>(
     into: &mut BTreeMap<u64, T>,
     from: &BTreeMap<u64, T>,
 ) -> Result<(), CellError> {
+    merge_records(into, from.iter().map(|(k, r)| (*k, Cow::Borrowed(r))))
+}
+
+/// [`merge_tables`] of a table the caller gives up: the records of new keys are moved
+/// rather than copied (the same sums).
+pub fn merge_tables_owned<T: MergeRecord>(
+    into: &mut BTreeMap<u64, T>,
+    from: BTreeMap<u64, T>,
+) -> Result<(), CellError> {
+    merge_records(into, from.into_iter().map(|(k, r)| (k, Cow::Owned(r))))
+}
+
+/// The records of `from`, in its order, merged into `into` (new keys inserted).
+fn merge_records<'a, T: MergeRecord + 'a>(
+    into: &mut BTreeMap<u64, T>,
+    from: impl Iterator<Item = (u64, Cow<'a, T>)>,
+) -> Result<(), CellError> {
     for (key, rec) in from {
-        match into.get_mut(key) {
-            Some(acc) => acc.merge_record(rec)?,
+        match into.get_mut(&key) {
+            Some(acc) => acc.merge_record(&rec)?,
             None => {
-                into.insert(*key, rec.clone());
+                into.insert(key, rec.into_owned());
             }
         }
     }
@@ -734,19 +751,29 @@ impl AccumulatorTable {
     /// Merges `other` into `self` key by key ([`merge_tables`]); different kinds are a
     /// [`CellError::LayoutMismatch`].
     pub fn merge(&mut self, other: &Self) -> Result<(), CellError> {
-        match (self, other) {
-            (Self::Moments(a, ia), Self::Moments(b, ib)) => {
-                merge_tables(a, b)?;
-                *ia = add_image_variances(*ia, *ib);
-                Ok(())
-            }
-            (Self::Mean(a, ia), Self::Mean(b, ib)) => {
-                merge_tables(a, b)?;
-                *ia = add_image_variances(*ia, *ib);
-                Ok(())
-            }
-            _ => Err(CellError::LayoutMismatch),
+        self.merge_cow(Cow::Borrowed(other))
+    }
+
+    /// [`Self::merge`] of a table the caller gives up: its new cells are moved, not copied
+    /// (the same sums).
+    pub fn merge_owned(&mut self, other: Self) -> Result<(), CellError> {
+        self.merge_cow(Cow::Owned(other))
+    }
+
+    /// [`Self::merge`] (`other` borrowed) or [`Self::merge_owned`] (owned).
+    fn merge_cow(&mut self, other: Cow<'_, Self>) -> Result<(), CellError> {
+        let (Self::Moments(_, image) | Self::Mean(_, image)) = other.as_ref();
+        let image = *image;
+        match (&mut *self, other) {
+            (Self::Moments(a, _), Cow::Borrowed(Self::Moments(b, _))) => merge_tables(a, b)?,
+            (Self::Moments(a, _), Cow::Owned(Self::Moments(b, _))) => merge_tables_owned(a, b)?,
+            (Self::Mean(a, _), Cow::Borrowed(Self::Mean(b, _))) => merge_tables(a, b)?,
+            (Self::Mean(a, _), Cow::Owned(Self::Mean(b, _))) => merge_tables_owned(a, b)?,
+            _ => return Err(CellError::LayoutMismatch),
         }
+        let (Self::Moments(_, mine) | Self::Mean(_, mine)) = self;
+        *mine = add_image_variances(*mine, image);
+        Ok(())
     }
 
     /// Whether [`Self::solve`] keeps the fits under `policy` (does not switch them off:
@@ -950,6 +977,23 @@ mod tests {
         assert!(matches!(m, AccumulatorTable::Moments(_, Some(v)) if v == 1.25));
         m.merge(&old).unwrap();
         assert!(matches!(m, AccumulatorTable::Moments(_, None)));
+        // A merge of an owned table (its new cells moved) is the same merge.
+        let mut owned = AccumulatorTable::empty(KIND_CELL_ACCUMULATORS).unwrap();
+        owned.merge_owned(a.clone()).unwrap();
+        owned
+            .merge_owned(AccumulatorTable::Moments(t.clone(), Some(0.5)))
+            .unwrap();
+        let mut borrowed = AccumulatorTable::empty(KIND_CELL_ACCUMULATORS).unwrap();
+        borrowed.merge(&a).unwrap();
+        borrowed
+            .merge(&AccumulatorTable::Moments(t.clone(), Some(0.5)))
+            .unwrap();
+        assert_eq!(owned, borrowed);
+        assert_eq!(owned.encode(), borrowed.encode());
+        // Tables of different kinds do not merge, either way.
+        let mean = AccumulatorTable::Mean(BTreeMap::new(), None);
+        assert!(owned.merge(&mean).is_err());
+        assert!(owned.merge_owned(mean).is_err());
         // Coefficient and mean tables carry no variance (NaN) and still decode strictly.
         let co = solve_table(&t, &SolvePolicy::default());
         let cb = encode_table(&co);

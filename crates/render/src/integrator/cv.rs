@@ -2224,7 +2224,7 @@ impl TrainFold {
         match &mut self.table {
             None => self.table = Some(o.cells),
             Some(t) => {
-                if t.merge(&o.cells).is_err() {
+                if t.merge_owned(o.cells).is_err() {
                     self.error = Some(RenderError::InvalidSetting {
                         field: "estimator",
                         reason: "training accumulators of different layouts",
