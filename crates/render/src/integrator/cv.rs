@@ -143,9 +143,9 @@ fn normal_bin(n: Vec3) -> u32 {
 pub struct PhaseTimings {
     /// Surrogate render + denoise.
     pub surrogate: f64,
-    /// Training render with accumulation.
+    /// Training render with accumulation, and the tiles' merges (made as the tiles finish).
     pub train: f64,
-    /// Merge + solve of all cells.
+    /// Solve of all cells.
     pub solve: f64,
     /// Render with the CV applied.
     pub render: f64,
@@ -2093,9 +2093,8 @@ type InOrderFold = InOrder<TileCells, TileCells>;
 impl Banded {
     /// Renders `tile` as bands of full-width rows in parallel: [`BAND_ROWS`] rows for a
     /// training tile (its table depends on them where a log spills), [`PIXEL_BAND_ROWS`]
-    /// otherwise. A training
-    /// tile hands each band's cells to `fold`. The samples are added to `start` (the tile's
-    /// film of its earlier samples) when given.
+    /// otherwise. A training tile hands each band's cells to `fold`. The samples are added to
+    /// `start` (the tile's film of its earlier samples) when given.
     fn run(
         ctx: &CvContext<'_>,
         tile: TileRect,
@@ -2190,6 +2189,8 @@ struct TrainFold {
     table: Option<AccumulatorTable>,
     /// The first error in tile order; the tiles after it are not added.
     error: Option<RenderError>,
+    /// Seconds spent merging (CV overhead outside the sample loops).
+    seconds: f64,
 }
 
 impl TrainFold {
@@ -2202,11 +2203,19 @@ impl TrainFold {
             dropped: 0,
             table: None,
             error: None,
+            seconds: 0.0,
         }
     }
 
     /// Adds the next tile.
     fn add(&mut self, tile: Result<TrainTile, RenderError>) {
+        let t0 = Instant::now();
+        self.merge(tile);
+        self.seconds += t0.elapsed().as_secs_f64();
+    }
+
+    /// [`Self::add`] without the timing.
+    fn merge(&mut self, tile: Result<TrainTile, RenderError>) {
         if self.error.is_some() {
             return;
         }
@@ -2629,6 +2638,7 @@ pub fn render_estimator_image(
     }
     film = trained.film;
     rays += trained.rays;
+    overhead += trained.seconds;
     let training_tiles = train_tiles.len() as u32;
     let (training_tiles_stopped, training_tiles_dropped) = (trained.stopped, trained.dropped);
 
