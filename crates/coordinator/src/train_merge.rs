@@ -91,7 +91,7 @@ impl Prefix {
                 self.merged = Some(t);
                 true
             }
-            Some(m) => m.kind() == t.kind() && m.merge(&t).is_ok(),
+            Some(m) => m.kind() == t.kind() && m.merge_owned(t).is_ok(),
         }
     }
 }
