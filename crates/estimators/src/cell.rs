@@ -281,7 +281,7 @@ pub struct CellAccumulator {
 /// A hint to load the cache line of `x` (no architectural effect; nothing elsewhere than on
 /// `x86_64`).
 #[inline(always)]
-fn prefetch_read<T>(x: &T) {
+pub fn prefetch_read<T>(x: &T) {
     #[cfg(target_arch = "x86_64")]
     {
         use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};

@@ -460,6 +460,13 @@ pub trait VertexObserver {
     #[inline]
     fn vertex(&mut self, _record: &VertexRecord) {}
 
+    /// On a controlled vertex ([`controls`](Self::controls) returned `true`), the light NEE
+    /// selected, before it is sampled and before
+    /// [`controlled_vertex`](Self::controlled_vertex) reports it: a hint to start loading
+    /// what that report will read. Must not change any result.
+    #[inline]
+    fn nee_selected(&self, _light: u32) {}
+
     /// Asked once per path when [`CONTROLS_DIRECT`](Self::CONTROLS_DIRECT) is set: whether
     /// the observer's estimate of a controlled vertex is `path`'s MIS-weighted direct
     /// lighting plus a term of its own. Then [`path::trace`] adds the MIS-weighted direct

@@ -185,6 +185,9 @@ pub fn trace<O: VertexObserver>(
         } else {
             None
         };
+        if controls && let Some((sel_light, _)) = nee_sel {
+            observer.nee_selected(sel_light);
+        }
         if let Some((sel_light, sel_pmf)) = nee_sel
             && let Some(mut ls) = lights.sample_light(sel_light, h.p, u_light)
             && {
