@@ -25,9 +25,10 @@
 //!   partition block, the `P × K` cross block and the small dense `K × K` block. A sorted
 //!   list of the sampled partitions' indices points at their storage slots, so every
 //!   reader (iteration, merge, encoding, equality) sees them in increasing index order:
-//!   with at most [`SLOT_IS_PARTITION_MAX`] partitions, partition `k`'s slot is `k` (all `P`
-//!   slots allocated at the first partition sample), else slots are appended in
-//!   first-touch order (nothing moves).
+//!   with at most [`SLOT_IS_PARTITION_MAX`] partitions, a bit set per sampled partition
+//!   and a byte per partition give its slot, else a sorted index list does; either way
+//!   slots are appended in first-touch order (nothing moves) and only sampled partitions
+//!   have one.
 //! - Accumulation is in `f64` whatever the caller's precision. A sample with a NaN/Inf
 //!   anywhere, a non-positive pdf or an out-of-range index is **rejected and counted**
 //!   ([`CellAccumulator::rejected`]) and leaves every sum untouched.
@@ -38,14 +39,14 @@
 //!   decoding validates sizes, ordering and finiteness and never panics.
 //!
 //! # Hot loop
-//! [`CellAccumulator::add`] allocates only at a cell's first partition sample (all slots,
-//! or room for 64 appended ones) and, with appended slots, when a partition is first seen
-//! (which also inserts its index into the sorted `u32` list; with slot = partition it sets
-//! a bit). It touches the accumulator itself (the overlapping components' sums are kept
-//! inside it for small `K`) and the one sampled partition's entry, which holds its count:
-//! slot = partition for `P <= SLOT_IS_PARTITION_MAX`, else found through a direct index map
-//! when `P <= DIRECT_MAP_MAX`, else by binary search with a one-entry cache for runs of
-//! samples from the same light. In a training pass the cells are far larger than the
+//! [`CellAccumulator::add`] allocates only when a partition is first seen in the cell (an
+//! appended slot, in a list that grows by doubling; with `P > SLOT_IS_PARTITION_MAX` it
+//! also inserts the index into the sorted `u32` list, else it sets a bit and a byte). It
+//! touches the accumulator itself (the overlapping components' sums are kept inside it for
+//! small `K`) and the one sampled partition's entry, which holds its count: its slot is in
+//! the accumulator's byte map for `P <= SLOT_IS_PARTITION_MAX`, else found through a direct
+//! index map when `P <= DIRECT_MAP_MAX`, else by binary search with a one-entry cache for
+//! runs of samples from the same light. In a training pass the cells are far larger than the
 //! caches, so what a sample costs is the cache lines it touches (many-lights d5: one miss,
 //! on the partition entry, where there were four).
 //! Measured: 18–28 ns per sample for `P = 64`, `K = 2`, RGB (`benches/cells.rs`, warm).
@@ -254,9 +255,11 @@ pub struct CellAccumulator {
     /// The overlapping components' sums ([`OverlapSums`]).
     over: OverlapSums,
     /// With `P <= SLOT_IS_PARTITION_MAX`: bit `k` set once partition `k` was sampled (its
-    /// slot is `k`). Setting a bit is a partition's whole first touch, and the bits are the
-    /// sorted list of sampled partitions.
+    /// slot is `slot_of[k]`). The bits are the sorted list of sampled partitions.
     sampled: u64,
+    /// With `P <= SLOT_IS_PARTITION_MAX`: the storage slot of each sampled partition (slots
+    /// in first-touch order); meaningless where the bit in `sampled` is clear.
+    slot_of: [u8; SLOT_IS_PARTITION_MAX as usize],
     /// With `P > SLOT_IS_PARTITION_MAX`: the sampled partition indices, strictly increasing
     /// (else empty).
     part_ids: Vec<u32>,
@@ -264,10 +267,8 @@ pub struct CellAccumulator {
     part_slots: Vec<u32>,
     /// Per storage slot: `[diag, cross_0..K, b_0..C, g, g_light, count]` with
     /// `g = Σ w λ_k/p`, `g_light` its light-technique part and `count` the accepted samples
-    /// of the partition (an integer in `f64`, exact below 2⁵³; decoding refuses larger). With
-    /// `P <= SLOT_IS_PARTITION_MAX` the slots are the partitions (all `P` allocated at the
-    /// first partition sample, a zero count for one not sampled); else they are appended in
-    /// first-touch order.
+    /// of the partition (an integer in `f64`, exact below 2⁵³; decoding refuses larger), one
+    /// slot per sampled partition, appended in first-touch order.
     part_data: Vec<f64>,
     /// Partition and storage slot of the most recently used partition (`u32::MAX` = none;
     /// hot-loop cache, not part of equality; only with `P > SLOT_IS_PARTITION_MAX`).
@@ -282,15 +283,22 @@ pub struct CellAccumulator {
 /// `x86_64`).
 #[inline(always)]
 pub fn prefetch_read<T>(x: &T) {
+    prefetch_ptr(x as *const T);
+}
+
+/// A hint to load the cache line at `p`, which need not point to anything valid (a
+/// prefetch cannot fault).
+#[inline(always)]
+fn prefetch_ptr<T>(p: *const T) {
     #[cfg(target_arch = "x86_64")]
     {
         use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
-        // SAFETY: a prefetch accesses no memory architecturally (it cannot fault), and `x`
-        // is a valid reference anyway.
-        unsafe { _mm_prefetch::<_MM_HINT_T0>((x as *const T).cast()) };
+        // SAFETY: a prefetch accesses no memory architecturally: it cannot fault, whatever
+        // the address.
+        unsafe { _mm_prefetch::<_MM_HINT_T0>(p.cast()) };
     }
     #[cfg(not(target_arch = "x86_64"))]
-    let _ = x;
+    let _ = p;
 }
 
 /// Values [`OverlapSums`] keeps in the accumulator itself: the sums of a layout with one
@@ -367,8 +375,9 @@ fn overlap_parts_mut(
 /// The sampled partitions of an accumulator in increasing index order, with their storage
 /// slots ([`CellAccumulator::sorted_slots`]).
 enum SortedSlots<'a> {
-    /// The set bits of [`CellAccumulator`]'s `sampled` (slot = partition).
-    Bits(u64),
+    /// The set bits of [`CellAccumulator`]'s `sampled` and its slot bytes (`None`: slot =
+    /// partition).
+    Bits(u64, Option<&'a [u8; SLOT_IS_PARTITION_MAX as usize]>),
     /// Its sorted index list and the slots.
     Lists(std::iter::Zip<std::slice::Iter<'a, u32>, std::slice::Iter<'a, u32>>),
 }
@@ -379,10 +388,13 @@ impl Iterator for SortedSlots<'_> {
     #[inline]
     fn next(&mut self) -> Option<(u32, usize)> {
         match self {
-            Self::Bits(b) => {
+            Self::Bits(b, slot_of) => {
                 let k = (*b != 0).then(|| b.trailing_zeros())?;
                 *b &= *b - 1;
-                Some((k, k as usize))
+                Some((
+                    k,
+                    slot_of.map_or(k as usize, |s| usize::from(s[k as usize])),
+                ))
             }
             Self::Lists(l) => l.next().map(|(&id, &s)| (id, s as usize)),
         }
@@ -390,7 +402,7 @@ impl Iterator for SortedSlots<'_> {
 
     fn size_hint(&self) -> (usize, Option<usize>) {
         let n = match self {
-            Self::Bits(b) => b.count_ones() as usize,
+            Self::Bits(b, _) => b.count_ones() as usize,
             Self::Lists(l) => l.len(),
         };
         (n, Some(n))
@@ -399,16 +411,25 @@ impl Iterator for SortedSlots<'_> {
 
 impl ExactSizeIterator for SortedSlots<'_> {}
 
-/// Largest `P` whose accumulators store partition `k`'s moments in slot `k`, all `P` slots
-/// allocated at the cell's first partition sample (≤ 64 entries of ≤ 8 values for `K = 1`,
-/// RGB: 4 KiB, what the appended layout reserved for them). A sample then finds its entry
-/// with no index map, and its count in the same entry; a partition's first sample in the
-/// cell sets a bit of a `u64` that is also the sorted list of sampled partitions (hence at
-/// most 64). Many-lights d5 training (64 lights): the slot map and the separate count array
-/// were two of the four cache misses that made up ¾ of [`CellAccumulator::add`]'s time, and
-/// a partition's first sample in a cell (an insertion into the appended layout, then into
-/// the sorted index list) 6 %, then 2 %, of the training pass.
+/// Largest `P` whose accumulators find partition `k`'s slot in a byte map inside the
+/// accumulator (`slot_of[k]`), with a bit per partition set at its first sample that is
+/// also the sorted list of sampled partitions (hence at most 64). A sample then finds its
+/// entry through the accumulator's own cache lines, and its count in the same entry.
+/// Many-lights d5 training (64 lights): a separate slot map and count array were two of the
+/// four cache misses that made up ¾ of [`CellAccumulator::add`]'s time, and a partition's
+/// first sample in a cell (an insertion into a sorted index list) 6 % of the training pass.
+///
+/// Only sampled partitions have slots. Until 2026-12-07 all `P` were allocated at a cell's
+/// first partition sample (4 KiB for 64 lights): a large image's training tiles each touch
+/// tens of thousands of cells a few times (deep vertices land everywhere), and zeroing,
+/// merging and cloning those slots took more time than the samples (many-lights d5,
+/// 960×540, 17 spp: see `docs/bench/README.md`).
 pub const SLOT_IS_PARTITION_MAX: u32 = 64;
+
+/// Slots an accumulator with `P <= SLOT_IS_PARTITION_MAX` makes room for at its first
+/// partition sample (then the list doubles); with `P <= FIRST_SLOTS` all `P` are made
+/// then, partition `k` in slot `k` (a few lights: every cell meets them all).
+const FIRST_SLOTS: usize = 16;
 
 /// Partitions an accumulator with `P > SLOT_IS_PARTITION_MAX` makes room for at its first
 /// partition sample: a cell of a many-light scene meets many of its lights, and growing the
@@ -461,6 +482,7 @@ impl CellAccumulator {
             light: [0.0; 1 + CHANNELS],
             over: OverlapSums::zeros(k * (k + 1) / 2 + k * color.channels() + 2 * k),
             sampled: 0,
+            slot_of: [0; SLOT_IS_PARTITION_MAX as usize],
             part_ids: Vec::new(),
             part_slots: Vec::new(),
             part_data: Vec::new(),
@@ -541,10 +563,27 @@ impl CellAccumulator {
         self.stride() + 1
     }
 
-    /// Whether partition `k`'s storage slot is `k` ([`SLOT_IS_PARTITION_MAX`]).
+    /// Whether the sampled partitions are the bits of `sampled` and their slots in
+    /// `slot_of` ([`SLOT_IS_PARTITION_MAX`]).
     #[inline]
     fn slot_is_partition(&self) -> bool {
         self.layout.partitions <= SLOT_IS_PARTITION_MAX
+    }
+
+    /// Whether, with [`Self::slot_is_partition`], partition `k`'s slot is `k` ([`FIRST_SLOTS`]).
+    #[inline]
+    fn slot_is_id(&self) -> bool {
+        self.layout.partitions as usize <= FIRST_SLOTS
+    }
+
+    /// The storage slot of sampled partition `id` (with [`Self::slot_is_partition`]).
+    #[inline]
+    fn sampled_slot(&self, id: u32) -> usize {
+        if self.slot_is_id() {
+            id as usize
+        } else {
+            usize::from(self.slot_of[id as usize])
+        }
     }
 
     /// Storage slot `slot`: the moments `[diag, cross_0..K, b_0..C, g, g_light]` then the
@@ -587,7 +626,7 @@ impl CellAccumulator {
     /// `(partition, storage slot)` of the sampled partitions in increasing index order.
     fn sorted_slots(&self) -> SortedSlots<'_> {
         if self.slot_is_partition() {
-            SortedSlots::Bits(self.sampled)
+            SortedSlots::Bits(self.sampled, (!self.slot_is_id()).then_some(&self.slot_of))
         } else {
             SortedSlots::Lists(self.part_ids.iter().zip(&self.part_slots))
         }
@@ -651,11 +690,17 @@ impl CellAccumulator {
     #[inline]
     pub fn prefetch_partition(&self, id: u32) {
         let slot = if self.slot_is_partition() {
-            // All slots exist once the first partition was sampled.
-            if id >= self.layout.partitions {
-                return;
+            match self.stored_slot(id) {
+                Some(s) => s,
+                // Its slot will be the next one: the end of the list, when there is room.
+                None if self.part_data.len() < self.part_data.capacity() => {
+                    let end = self.part_data.as_ptr().wrapping_add(self.part_data.len());
+                    prefetch_ptr(end);
+                    prefetch_ptr(end.wrapping_add(self.slot_len() - 1));
+                    return;
+                }
+                None => return,
             }
-            id as usize
         } else {
             match self.slot_map.get(id as usize) {
                 Some(&s) if s != u32::MAX => s as usize,
@@ -676,9 +721,9 @@ impl CellAccumulator {
     fn slot_for(&mut self, id: u32) -> usize {
         if self.slot_is_partition() {
             if self.sampled & (1 << id) == 0 {
-                self.insert_partition(id);
+                return self.insert_partition(id);
             }
-            return id as usize;
+            return self.sampled_slot(id);
         }
         match self.slot_map.get(id as usize) {
             Some(&s) if s != u32::MAX => return s as usize,
@@ -694,7 +739,7 @@ impl CellAccumulator {
     fn stored_slot(&self, id: u32) -> Option<usize> {
         if self.slot_is_partition() {
             return (id < self.layout.partitions && self.sampled & (1 << id) != 0)
-                .then_some(id as usize);
+                .then(|| self.sampled_slot(id));
         }
         match self.slot_map.get(id as usize) {
             Some(&s) => (s != u32::MAX).then_some(s as usize),
@@ -706,14 +751,28 @@ impl CellAccumulator {
         }
     }
 
-    /// Marks partition `id` (`id < P <= SLOT_IS_PARTITION_MAX`, not yet sampled) sampled,
-    /// allocating all `P` slots the first time.
+    /// Marks partition `id` (`id < P <= SLOT_IS_PARTITION_MAX`, not yet sampled) sampled
+    /// and returns its storage slot (zeroed): with `P <= FIRST_SLOTS` slot `id`, all `P`
+    /// made at the first partition sample; else the next slot, appended.
     #[cold]
-    fn insert_partition(&mut self, id: u32) {
-        if self.part_data.is_empty() {
-            self.part_data = vec![0.0; self.layout.partitions as usize * self.slot_len()];
-        }
+    fn insert_partition(&mut self, id: u32) -> usize {
+        let n = self.slot_len();
+        let slot = if self.slot_is_id() {
+            if self.part_data.is_empty() {
+                self.part_data = vec![0.0; self.layout.partitions as usize * n];
+            }
+            id as usize
+        } else {
+            let slot = self.part_data.len() / n;
+            if slot == 0 {
+                self.part_data.reserve(FIRST_SLOTS * n);
+            }
+            self.part_data.resize((slot + 1) * n, 0.0);
+            slot
+        };
+        self.slot_of[id as usize] = slot as u8;
         self.sampled |= 1 << id;
+        slot
     }
 
     #[cold]

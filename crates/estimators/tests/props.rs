@@ -25,11 +25,16 @@ fn layout() -> ComponentLayout {
 }
 
 fn smp() -> impl Strategy<Value = Smp> {
+    smp_in(P)
+}
+
+/// A sample whose partition (if any) is below `parts`.
+fn smp_in(parts: u32) -> impl Strategy<Value = Smp> {
     (
         0.0f64..10.0,
         prop::array::uniform3(-100.0f64..100.0),
         0.01f64..50.0,
-        prop::option::of((0..P, 0.0f64..20.0)),
+        prop::option::of((0..parts, 0.0f64..20.0)),
         prop::collection::vec(0.0f64..20.0, K as usize),
         any::<bool>(),
     )
@@ -324,18 +329,42 @@ fn sums(acc: &CellAccumulator) -> Vec<u64> {
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(64))]
 
-    /// The accumulator's three ways of storing partitions (slot = partition for
-    /// `P <= SLOT_IS_PARTITION_MAX`, appended slots found through a direct map up to
-    /// `DIRECT_MAP_MAX`, by binary search above) and its two of storing the overlapping sums
-    /// (inline for small `K`, else allocated) keep the same sums, bit for bit, through
-    /// accumulation, merges and the wire; [`CellAccumulator::prefetch_partition`] works on
-    /// each.
+    /// The accumulator's four ways of storing partitions (up to `SLOT_IS_PARTITION_MAX`
+    /// partitions: slot = partition for a few, else appended slots found through a byte map;
+    /// above it appended slots found through a direct map up to `DIRECT_MAP_MAX`, by binary
+    /// search above) and its two of storing the overlapping sums (inline for small `K`, else
+    /// allocated) keep the same sums, bit for bit, through accumulation, merges and the wire;
+    /// [`CellAccumulator::prefetch_partition`] works on each.
     #[test]
     fn every_storage_layout_keeps_the_same_sums(a in prop::collection::vec(smp(), 0..40), b in prop::collection::vec(smp(), 0..40), c in color(), k in 1..=K) {
         use estimators::cell::{DIRECT_MAP_MAX, SLOT_IS_PARTITION_MAX};
+        same_sums_in_every_layout(&a, &b, c, k, &[P, SLOT_IS_PARTITION_MAX, SLOT_IS_PARTITION_MAX + 1, DIRECT_MAP_MAX + 1])?;
+    }
+
+    /// The same with samples spread over all `SLOT_IS_PARTITION_MAX` partitions, met in
+    /// random order: the appended slots outgrow their first allocation, and the byte map's
+    /// slots differ from the partitions.
+    #[test]
+    fn many_partitions_keep_the_same_sums_in_every_layout(a in prop::collection::vec(smp_in(estimators::cell::SLOT_IS_PARTITION_MAX), 0..200), b in prop::collection::vec(smp_in(estimators::cell::SLOT_IS_PARTITION_MAX), 0..200), c in color()) {
+        use estimators::cell::{DIRECT_MAP_MAX, SLOT_IS_PARTITION_MAX};
+        same_sums_in_every_layout(&a, &b, c, K, &[SLOT_IS_PARTITION_MAX, SLOT_IS_PARTITION_MAX + 1, DIRECT_MAP_MAX + 1])?;
+    }
+}
+
+/// `a`, `b` and their merge built with each partition count of `layouts` (all above the
+/// samples' partitions): the same sums, bit for bit, also through the wire and a second
+/// merge; prefetch hints on every id are harmless.
+fn same_sums_in_every_layout(
+    a: &[Smp],
+    b: &[Smp],
+    c: ColorMode,
+    k: u32,
+    layouts: &[u32],
+) -> Result<(), TestCaseError> {
+    {
         let mut want: Option<(Vec<u64>, Vec<u64>)> = None;
-        for p in [P, SLOT_IS_PARTITION_MAX + 1, DIRECT_MAP_MAX + 1] {
-            let (x, y) = (build_in(&a, p, k, c), build_in(&b, p, k, c));
+        for &p in layouts {
+            let (x, y) = (build_in(a, p, k, c), build_in(b, p, k, c));
             // A prefetch hint is safe for any partition id, sampled or not, in range or
             // not, and on an accumulator without partition storage.
             for id in (0..p + 2).chain([u32::MAX]) {
@@ -359,4 +388,5 @@ proptest! {
             }
         }
     }
+    Ok(())
 }
