@@ -28,7 +28,7 @@
 //!   with at most [`SLOT_IS_PARTITION_MAX`] partitions, a bit set per sampled partition
 //!   and a byte per partition give its slot, else a sorted index list does; either way
 //!   slots are appended in first-touch order (nothing moves) and only sampled partitions
-//!   have one.
+//!   have one (but for a few partitions: all at the first sample, slot = partition).
 //! - Accumulation is in `f64` whatever the caller's precision. A sample with a NaN/Inf
 //!   anywhere, a non-positive pdf or an out-of-range index is **rejected and counted**
 //!   ([`CellAccumulator::rejected`]) and leaves every sum untouched.
@@ -255,10 +255,12 @@ pub struct CellAccumulator {
     /// The overlapping components' sums ([`OverlapSums`]).
     over: OverlapSums,
     /// With `P <= SLOT_IS_PARTITION_MAX`: bit `k` set once partition `k` was sampled (its
-    /// slot is `slot_of[k]`). The bits are the sorted list of sampled partitions.
+    /// slot is `k` with `P <= FIRST_SLOTS`, else `slot_of[k]`). The bits are the sorted
+    /// list of sampled partitions.
     sampled: u64,
-    /// With `P <= SLOT_IS_PARTITION_MAX`: the storage slot of each sampled partition (slots
-    /// in first-touch order); meaningless where the bit in `sampled` is clear.
+    /// With `FIRST_SLOTS < P <= SLOT_IS_PARTITION_MAX`: the storage slot of each sampled
+    /// partition (slots in first-touch order); meaningless where the bit in `sampled` is
+    /// clear.
     slot_of: [u8; SLOT_IS_PARTITION_MAX as usize],
     /// With `P > SLOT_IS_PARTITION_MAX`: the sampled partition indices, strictly increasing
     /// (else empty).
@@ -267,15 +269,18 @@ pub struct CellAccumulator {
     part_slots: Vec<u32>,
     /// Per storage slot: `[diag, cross_0..K, b_0..C, g, g_light, count]` with
     /// `g = Σ w λ_k/p`, `g_light` its light-technique part and `count` the accepted samples
-    /// of the partition (an integer in `f64`, exact below 2⁵³; decoding refuses larger), one
-    /// slot per sampled partition, appended in first-touch order.
+    /// of the partition (an integer in `f64`, exact below 2⁵³; decoding refuses larger): one
+    /// slot per sampled partition, appended in first-touch order, or with
+    /// `P <= FIRST_SLOTS` all `P` from the first partition sample on (zero for a partition
+    /// not sampled).
     part_data: Vec<f64>,
     /// Partition and storage slot of the most recently used partition (`u32::MAX` = none;
     /// hot-loop cache, not part of equality; only with `P > SLOT_IS_PARTITION_MAX`).
     last: (u32, u32),
     /// Direct partition → storage slot map (`u32::MAX` = not sampled) when
-    /// `SLOT_IS_PARTITION_MAX < P <= DIRECT_MAP_MAX`, else empty: slots are the partitions,
-    /// or found by binary search (hot-loop cache; not part of equality or the encoding).
+    /// `SLOT_IS_PARTITION_MAX < P <= DIRECT_MAP_MAX`, else empty: slots come from `sampled`
+    /// and `slot_of`, or by binary search (hot-loop cache; not part of equality or the
+    /// encoding).
     slot_map: Vec<u32>,
 }
 
