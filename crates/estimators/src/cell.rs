@@ -697,6 +697,8 @@ impl CellAccumulator {
         let slot = if self.slot_is_partition() {
             match self.stored_slot(id) {
                 Some(s) => s,
+                // A few partitions: all slots exist once the first was sampled.
+                None if self.slot_is_id() => id as usize,
                 // Its slot will be the next one: the end of the list, when there is room.
                 None if self.part_data.len() < self.part_data.capacity() => {
                     let end = self.part_data.as_ptr().wrapping_add(self.part_data.len());

@@ -361,31 +361,29 @@ fn same_sums_in_every_layout(
     k: u32,
     layouts: &[u32],
 ) -> Result<(), TestCaseError> {
-    {
-        let mut want: Option<(Vec<u64>, Vec<u64>)> = None;
-        for &p in layouts {
-            let (x, y) = (build_in(a, p, k, c), build_in(b, p, k, c));
-            // A prefetch hint is safe for any partition id, sampled or not, in range or
-            // not, and on an accumulator without partition storage.
-            for id in (0..p + 2).chain([u32::MAX]) {
-                x.prefetch_partition(id);
-                CellAccumulator::new(x.layout(), c).prefetch_partition(id);
-            }
-            let mut xy = x.clone();
-            xy.merge(&y).unwrap();
-            let back = CellAccumulator::decode(&xy.encode()).unwrap();
-            prop_assert_eq!(&back, &xy);
-            // The wire copy merged again: the same as merging the originals.
-            let mut twice = back.clone();
-            twice.merge(&y).unwrap();
-            let mut direct = xy.clone();
-            direct.merge(&y).unwrap();
-            prop_assert_eq!(&twice, &direct);
-            let got = (sums(&x), sums(&xy));
-            match &want {
-                None => want = Some(got),
-                Some(w) => prop_assert_eq!(w, &got, "P = {}", p),
-            }
+    let mut want: Option<(Vec<u64>, Vec<u64>)> = None;
+    for &p in layouts {
+        let (x, y) = (build_in(a, p, k, c), build_in(b, p, k, c));
+        // A prefetch hint is safe for any partition id, sampled or not, in range or
+        // not, and on an accumulator without partition storage.
+        for id in (0..p + 2).chain([u32::MAX]) {
+            x.prefetch_partition(id);
+            CellAccumulator::new(x.layout(), c).prefetch_partition(id);
+        }
+        let mut xy = x.clone();
+        xy.merge(&y).unwrap();
+        let back = CellAccumulator::decode(&xy.encode()).unwrap();
+        prop_assert_eq!(&back, &xy);
+        // The wire copy merged again: the same as merging the originals.
+        let mut twice = back.clone();
+        twice.merge(&y).unwrap();
+        let mut direct = xy.clone();
+        direct.merge(&y).unwrap();
+        prop_assert_eq!(&twice, &direct);
+        let got = (sums(&x), sums(&xy));
+        match &want {
+            None => want = Some(got),
+            Some(w) => prop_assert_eq!(w, &got, "P = {}", p),
         }
     }
     Ok(())
