@@ -373,7 +373,7 @@ pub async fn finish_job(state: &AppState, job_id: i64) -> Result<bool, FinishErr
 fn estimator_of(job: &JobRow) -> Result<Option<PhasedEstimator>, FinishError> {
     let spec: JobSpec = serde_json::from_str(&job.spec)
         .map_err(|e| FinishError::Corrupt(format!("stored spec: {e}")))?;
-    Ok(spec.estimator.phased_for(spec.sampler))
+    Ok(spec.estimator.phased_for(&job.resolved))
 }
 
 /// A stored result frame (validated at upload: a failure here means a corrupt store).

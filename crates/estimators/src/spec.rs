@@ -228,8 +228,8 @@ pub const CMS_GROUP_SAMPLES: u64 = 16;
 /// | `color` | `"rgb"` \| `"mono"` | `"rgb"` | coefficients per channel or shared [Hua §4.3] |
 /// | `training_spp` | u32 | 16 | samples per pixel of the training phase (kept in the image, weighed against the render phase's by their variance: [`crate::composite::phase_weight`]) |
 /// | `surrogate_spp` | u32 | 1 | samples per pixel of the surrogate image (only with `relative`; kept in the image) |
-/// | `grid_resolution` | `[nx, ny, nz]` \| null | null | cells per axis over the scene bounds; null = adaptive (≈ 16×16 pixels per cell) |
-/// | `grid_levels` | u32 \| null | null | each grid cell is subdivided this many times (2×2×2 children per level, at most [`MAX_GRID_LEVELS`]; grid cells × `9^levels` at most [`MAX_GRID_INDICES`]) where the camera's rays hit glossy surfaces (other vertices keep the undivided cells: `render::integrator::cv::Grid`); every cell keeps the fit of its own samples or of an ancestor's, whichever removes the most variance out of sample ([`crate::solve::SolvePolicy::levels`]). 0 = one level (the cells of `grid_resolution`). null = [`CMS_GRID_LEVELS`], fewer where a given `grid_resolution` would exceed that limit. Chosen by equal-spp measurements (`docs/bench/README.md`) |
+/// | `grid_resolution` | `[nx, ny, nz]` \| null | null | cells per axis over the scene bounds; null = adaptive ([`adaptive_grid`]: ≈ 16×16 pixels per cell, at most [`ADAPTIVE_GRID_MAX_AXIS`] cells on the longest axis) |
+/// | `grid_levels` | u32 \| null | null | each grid cell is subdivided this many times (2×2×2 children per level, at most [`MAX_GRID_LEVELS`]; grid cells × `9^levels` at most [`MAX_GRID_INDICES`]) where the camera's rays hit glossy surfaces (other vertices keep the undivided cells: `render::integrator::cv::Grid`); every cell keeps the fit of its own samples or of an ancestor's, whichever removes the most variance out of sample ([`crate::solve::SolvePolicy::levels`]). 0 = one level (the cells of `grid_resolution`). null = [`CMS_GRID_LEVELS`], fewer where a given `grid_resolution` would exceed that limit, more on the adaptive grid of an image wider than 512 pixels ([`adaptive_grid`], [`PhasedEstimator::for_image`]). Chosen by equal-spp measurements (`docs/bench/README.md`) |
 /// | `max_light_components` | u32 | 1024 | more emitters than this are clustered by spatial proximity |
 /// | `ridge` | f64 \| null | null | relative Tikhonov regularisation of each cell system: `A + ridge·diag(A)` shrinks `α` toward the base estimator (`path` with the default `base`); 0.5 scales an uncorrelated coefficient by 2/3. null = by the job's sampler ([`PhasedEstimator::for_sampler`]): **0.5 with the Sobol sampler** ([`RIDGE_STRATIFIED`]: the fits minimise the variance of independent samples, which overstates the per-pixel stratified `path`'s, so they are shrunk toward it; 1 shrank colour-lamp's fits too far, 1.42× → 1.53× at 0.5, and below 0.5 many-lights' sparsely sampled lights lose), **0.1 with the independent one** ([`RIDGE_INDEPENDENT`]: there the fits' objective is the estimator's variance, and less shrinking gains 3–10 % at equal spp on colour-lamp, `manylights-4` and veach-mis d2). Chosen by equal-spp measurements (`docs/bench/README.md`) |
 /// | `min_samples` | u64 | 16 | cells with fewer training samples fall back to the plain estimator |
@@ -300,7 +300,7 @@ impl Default for CmsOptions {
 /// | parameter | type | default | meaning |
 /// |---|---|---|---|
 /// | `training_spp` | u32 | 16 | samples per pixel of the training phase (kept in the image, weighed against the render phase's by their variance: [`crate::composite::phase_weight`]) |
-/// | `grid_resolution` | `[nx, ny, nz]` \| null | null | cells per axis; null = adaptive (≈ 16×16 pixels per cell) |
+/// | `grid_resolution` | `[nx, ny, nz]` \| null | null | cells per axis; null = adaptive ([`adaptive_grid`]: ≈ 16×16 pixels per cell, at most [`ADAPTIVE_GRID_MAX_AXIS`] cells on the longest axis) |
 /// | `max_light_components` | u32 | 1024 | more emitters than this are clustered by spatial proximity |
 /// | `relative` | bool | `true` | weigh each training vertex by `1/(surrogate + 0.01)²` [Hua eq. 25] (times its squared throughput [Hua eq. 29]) when predicting whether a cell's coefficients reduce its variance ([`crate::perlight`]); the coefficients themselves stay the cell means [Hua §7.2] |
 /// | `surrogate_spp` | u32 | 1 | samples per pixel of the surrogate image (only with `relative`; kept in the image) |
@@ -482,6 +482,26 @@ impl PhasedEstimator {
         }
     }
 
+    /// The estimator with its image-dependent defaults filled in: `cms` on the adaptive grid
+    /// (`grid_resolution` and `grid_levels` both `None`) gets `grid_levels`
+    /// [`CMS_GRID_LEVELS`] plus the extra subdivisions of [`adaptive_grid`] for a
+    /// `width × height` image (at most [`MAX_GRID_LEVELS`]); every other estimator and option
+    /// is unchanged. Like [`Self::for_sampler`], every consumer of a job resolves through
+    /// this (`protocol::EstimatorSpec::phased_for`, `render::integrator::cv::CvJob`), so the
+    /// grid, the solve's hierarchy and the key checks agree.
+    pub fn for_image(self, width: u32, height: u32) -> Self {
+        match self {
+            Self::Cms(o) if o.grid_resolution.is_none() && o.grid_levels.is_none() => {
+                let (_, extra) = adaptive_grid(width, height);
+                Self::Cms(CmsOptions {
+                    grid_levels: Some(CMS_GRID_LEVELS.saturating_add(extra).min(MAX_GRID_LEVELS)),
+                    ..o
+                })
+            }
+            other => other,
+        }
+    }
+
     /// Whether a path of at most `max_depth` vertices has a vertex the CV controls: vertex `d`
     /// scatters (has direct lighting and a bounce to control) when `d + 1 < max_depth`, and
     /// the CV starts at [`Self::min_depth`]. False e.g. for `cms` at depth 2 with the default
@@ -644,6 +664,35 @@ pub const NORMAL_BINS: u32 = 6;
 /// Default `grid_levels` of `cms`, chosen by equal-spp measurements (`docs/bench/README.md`).
 pub const CMS_GRID_LEVELS: u32 = 2;
 
+/// Most cells on the scene's longest axis of the adaptive grid ([`adaptive_grid`]).
+pub const ADAPTIVE_GRID_MAX_AXIS: u32 = 32;
+
+/// The adaptive grid of a `width × height` image: `(n, extra)`, `n` cells on the scene's
+/// longest axis (the others proportionally, `render::integrator::cv::Grid`) and `extra`
+/// subdivisions for `cms`'s glossy camera hits on top of [`CMS_GRID_LEVELS`]
+/// ([`PhasedEstimator::for_image`]).
+///
+/// `n = max(width, height)/16` (≈ 16×16 pixels per cell where the scene fills the frame),
+/// clamped to 8…[`ADAPTIVE_GRID_MAX_AXIS`]. Past the cap (images wider than 512 pixels) the
+/// cells stop shrinking with the pixels: a deeper vertex's light reaches the image averaged
+/// over its path's footprint, and a finer grid only spread the training samples over more
+/// cells, each made, merged and solved per training tile (960×540, 3 seeds, 64 spp:
+/// many-lights d5 2.39× → 2.99× `path` at equal spp, 1.14× → 1.93× at equal time). The
+/// camera's glossy hits, which the image resolves at pixel scale, keep their cells' pixel
+/// footprint through `extra = round(log2(raw / n))` more levels (veach-mis d5 at 960×540:
+/// 2.39× → 2.40× at equal spp with them, 2.14× without). Integer arithmetic only, so every
+/// machine of a farm agrees.
+pub fn adaptive_grid(width: u32, height: u32) -> (u32, u32) {
+    let raw = u64::from((width.max(height) / 16).max(8));
+    let n = raw.min(u64::from(ADAPTIVE_GRID_MAX_AXIS));
+    // round(log2(raw/n)) = e where 2^(2e−1) ≤ (raw/n)² < 2^(2e+1).
+    let mut extra = 0u32;
+    while extra < 32 && raw * raw >= (n * n) << (2 * extra + 1) {
+        extra += 1;
+    }
+    (n as u32, extra)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -770,6 +819,63 @@ mod tests {
         });
         assert!(off.validate().is_ok());
         assert!(OcvOptions::default().validate().is_ok());
+    }
+
+    #[test]
+    fn the_adaptive_grid_stops_at_its_cap_and_subdivides_glossy_hits_instead() {
+        // ≈ 16 pixels per cell up to the cap: images up to 512 pixels wide are unchanged.
+        assert_eq!(adaptive_grid(16, 16), (8, 0));
+        assert_eq!(adaptive_grid(256, 256), (16, 0));
+        assert_eq!(adaptive_grid(384, 256), (24, 0));
+        assert_eq!(adaptive_grid(512, 100), (32, 0));
+        assert_eq!(adaptive_grid(0, 0), (8, 0));
+        // Past it, round(log2(raw/32)) more levels: 60/32 → 1, 80/32 → 1, 120/32 → 2
+        // (log2 3.75 = 1.91), 90/32 → 1 (1.49), 91/32 → 2 (1.51).
+        assert_eq!(adaptive_grid(960, 540), (32, 1));
+        assert_eq!(adaptive_grid(1280, 720), (32, 1));
+        assert_eq!(adaptive_grid(1920, 1080), (32, 2));
+        assert_eq!(adaptive_grid(1440, 10), (32, 1));
+        assert_eq!(adaptive_grid(1456, 10), (32, 2));
+        assert_eq!(adaptive_grid(u32::MAX, 1).0, ADAPTIVE_GRID_MAX_AXIS);
+        // The rounding against the floating-point formula, over every width.
+        for w in (0..70_000u32).step_by(7) {
+            let raw = f64::from((w / 16).max(8));
+            let want = (raw / f64::from(ADAPTIVE_GRID_MAX_AXIS))
+                .log2()
+                .max(0.0)
+                .round();
+            assert_eq!(f64::from(adaptive_grid(w, 1).1), want, "width {w}");
+        }
+
+        let cms = |grid_resolution, grid_levels| {
+            PhasedEstimator::Cms(CmsOptions {
+                grid_resolution,
+                grid_levels,
+                ..CmsOptions::default()
+            })
+        };
+        let levels = |e: PhasedEstimator| e.grid_levels();
+        assert_eq!(levels(cms(None, None).for_image(256, 256)), CMS_GRID_LEVELS);
+        assert_eq!(
+            levels(cms(None, None).for_image(960, 540)),
+            CMS_GRID_LEVELS + 1
+        );
+        assert_eq!(
+            cms(None, None).for_image(1920, 1080).solve_policy().levels,
+            CMS_GRID_LEVELS + 2
+        );
+        assert_eq!(
+            levels(cms(None, None).for_image(60_000, 60_000)),
+            MAX_GRID_LEVELS
+        );
+        // What the job sets is kept; a given grid is not the adaptive one.
+        assert_eq!(levels(cms(None, Some(1)).for_image(1920, 1080)), 1);
+        assert_eq!(levels(cms(Some([8, 8, 8]), None).for_image(1920, 1080)), 2);
+        let once = cms(None, None).for_image(1920, 1080);
+        assert_eq!(once.for_image(256, 256), once);
+        assert!(once.validate().is_ok());
+        let plm = PhasedEstimator::PerLightCv(PerLightCvOptions::default());
+        assert_eq!(plm.for_image(1920, 1080), plm);
     }
 
     #[test]

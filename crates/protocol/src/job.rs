@@ -169,13 +169,14 @@ impl EstimatorSpec {
         )
     }
 
-    /// The phase-structured form of a job sampling with `sampler` (`cms`, `per_light_cv`,
-    /// `optimal_mis`), its sampler-dependent defaults filled in
-    /// ([`PhasedEstimator::for_sampler`]); `None` for the estimators rendered in one pass.
+    /// The phase-structured form for `job` (`cms`, `per_light_cv`, `optimal_mis`), its
+    /// sampler- and image-dependent defaults filled in ([`PhasedEstimator::for_sampler`],
+    /// [`PhasedEstimator::for_image`]); `None` for the estimators rendered in one pass.
     /// The only way out of the spec, so the planner, the worker's and the coordinator's
     /// solves and upload checks resolve a job's defaults alike.
-    pub fn phased_for(&self, sampler: SamplerKind) -> Option<PhasedEstimator> {
-        self.phased().map(|p| p.for_sampler(sampler))
+    pub fn phased_for(&self, job: &ResolvedJob) -> Option<PhasedEstimator> {
+        self.phased()
+            .map(|p| p.for_sampler(job.sampler).for_image(job.width, job.height))
     }
 
     /// The phase-structured form as written (sampler defaults unresolved: for range checks).
@@ -557,7 +558,7 @@ pub const SURROGATE_TILE: u32 = 128;
 
 fn phase_shapes(job: &ResolvedJob, est: &EstimatorSpec) -> Vec<(PhaseKind, u32, Range<u32>, u32)> {
     let spt = job.samples_per_task;
-    let Some(p) = est.phased_for(job.sampler) else {
+    let Some(p) = est.phased_for(job) else {
         return vec![(PhaseKind::Render, job.tile_size, 0..job.spp, spt)];
     };
     let max_depth = u32::try_from(job.max_depth).unwrap_or(u32::MAX); // −1: unbounded

@@ -313,7 +313,7 @@ pub fn render_local(prepared: &Prepared, job: &ResolvedJob) -> Result<AssembledI
             };
             results.push(prepared.render_task(header, phase.kind, &inputs)?);
         }
-        let phased = prepared.estimator.phased_for(job.sampler);
+        let phased = prepared.estimator.phased_for(job);
         match (phase.kind, phased) {
             (PhaseKind::Surrogate, Some(_)) => {
                 let blob = cv::surrogate_blob(job, &results)?;
@@ -444,9 +444,21 @@ mod tests {
         max_depth: i32,
         sampler: protocol::job::SamplerKind,
     ) -> Vec<f32> {
+        local_equals_in_process_driver_sized(&cornell(), est, seed, max_depth, sampler, (48, 32))
+    }
+
+    /// [`local_equals_in_process_driver_with`] for a `width × height` image of `scene`.
+    fn local_equals_in_process_driver_sized(
+        scene: &[u8],
+        est: EstimatorSpec,
+        seed: u64,
+        max_depth: i32,
+        sampler: protocol::job::SamplerKind,
+        (width, height): (u32, u32),
+    ) -> Vec<f32> {
         let j = ResolvedJob {
-            width: 48,
-            height: 32,
+            width,
+            height,
             spp: 24,
             seed,
             sampler,
@@ -456,7 +468,7 @@ mod tests {
             tile_size: 16,
             samples_per_task: 24,
         };
-        let p = Prepared::new(&cornell(), BTreeMap::new(), &j, &est).unwrap();
+        let p = Prepared::new(scene, BTreeMap::new(), &j, &est).unwrap();
         let farm = render_local(&p, &j).unwrap();
         let opts = render::tile::RenderOptions {
             tile_size: 16,
@@ -470,7 +482,7 @@ mod tests {
         )
         .unwrap();
         let controls = est
-            .phased_for(sampler)
+            .phased_for(&j)
             .is_some_and(|p| p.controls_any_vertex(max_depth as u32));
         assert_eq!(report.cells > 0, controls, "{report:?}");
         let layers = film.layers();
@@ -496,6 +508,51 @@ mod tests {
     #[test]
     fn cms_render_local_equals_render_estimator_image_bitwise() {
         local_equals_in_process_driver(EstimatorSpec::Cms(Default::default()), 9);
+    }
+
+    /// An image wider than 512 pixels gets `cms`'s adaptive grid with an extra level for the
+    /// glossy camera hits (`estimators::spec::adaptive_grid`): the farm's plan, solve and key
+    /// checks resolve it as the renderer does, so the bits are the driver's.
+    #[test]
+    fn a_wide_images_extra_grid_level_is_resolved_alike_on_the_farm() {
+        use estimators::spec::{CMS_GRID_LEVELS, CmsOptions};
+        use protocol::job::SamplerKind;
+        let (width, height) = (1040, 24);
+        assert_eq!(estimators::spec::adaptive_grid(width, height).1, 1);
+        let applied = CmsOptions {
+            min_image_gain: None,
+            min_fit_gain: None,
+            ..CmsOptions::default()
+        };
+        let j = ResolvedJob {
+            width,
+            height,
+            spp: 24,
+            seed: 9,
+            sampler: SamplerKind::Independent,
+            max_depth: 5,
+            rr_depth: 5,
+            hide_emitters: false,
+            tile_size: 16,
+            samples_per_task: 24,
+        };
+        let est = EstimatorSpec::Cms(applied);
+        let levels = est.phased_for(&j).map(|p| p.grid_levels());
+        assert_eq!(levels, Some(CMS_GRID_LEVELS + 1));
+        // veach-mis: the camera sees its glossy plates.
+        let scene = std::fs::read(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../../scenes/veach-mis/scene.json"
+        ))
+        .unwrap();
+        local_equals_in_process_driver_sized(
+            &scene,
+            est,
+            9,
+            5,
+            SamplerKind::Independent,
+            (width, height),
+        );
     }
 
     /// A job's `sampler` reaches the renderer: the independent sampler's farm image is the

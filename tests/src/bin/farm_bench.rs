@@ -546,7 +546,7 @@ fn barrier_breakdown(coord: &Coordinator, id: i64, train: i64) {
     let spec: protocol::JobSpec = serde_json::from_str(&job.spec).expect("spec");
     let est = spec
         .estimator
-        .phased_for(spec.sampler)
+        .phased_for(&job.resolved)
         .expect("a phased estimator");
     let best = |f: &mut dyn FnMut()| {
         (0..3)

@@ -259,7 +259,7 @@ async fn check_cells(
         .ok_or_else(|| AppError::NotFound(format!("job {}", task.job_id)))?;
     let spec: JobSpec = serde_json::from_str(&job.spec)
         .map_err(|e| AppError::Internal(format!("stored spec: {e}")))?;
-    let Some(est) = spec.estimator.phased_for(spec.sampler) else {
+    let Some(est) = spec.estimator.phased_for(&job.resolved) else {
         return Err(AppError::Internal(format!(
             "job {} has a train phase but estimator `{}` has none",
             job.id, job.estimator

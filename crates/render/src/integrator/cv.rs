@@ -81,10 +81,11 @@
 //!
 //! # Grid
 //! `grid_resolution = [nx, ny, nz]` regular cells over the scene bounds; the adaptive
-//! default gives the longest axis `max(width, height)/16` cells (clamped to 8…128, fewer
-//! where they would pass [`MAX_GRID_CELLS`], or the subdivisions [`MAX_GRID_INDICES`]) and
-//! the others proportionally.
-//! `cms` subdivides each cell `grid_levels` times (default 2) for the camera's hits on glossy
+//! default gives the longest axis `max(width, height)/16` cells (clamped to
+//! 8…[`ADAPTIVE_GRID_MAX_AXIS`], fewer where the subdivisions would pass
+//! [`MAX_GRID_INDICES`]) and the others proportionally ([`adaptive_grid`]).
+//! `cms` subdivides each cell `grid_levels` times (default 2, one more per doubling of
+//! `max(width, height)/16` past the cap: [`PhasedEstimator::for_image`]) for the camera's hits on glossy
 //! surfaces, 2×2×2 per level; every other vertex stays in the undivided cell, and the table
 //! solve fits each subdivided cell against its ancestors ([`Grid`],
 //! [`estimators::solve::SolvePolicy::levels`]).
@@ -102,8 +103,8 @@ use estimators::composite::{combine_phase_images, controlled_scale};
 use estimators::perlight::MeanContributionAccumulator;
 use estimators::solve::{CellCoefficients, CellHalves, SolvePolicy, SolveStatus};
 pub use estimators::spec::{
-    CvBase, CvColor, MAX_GRID_CELLS, MAX_GRID_INDICES, MAX_GRID_LEVELS, PhaseSamples,
-    PhasedEstimator, TRAIN_TILE, grid_fits,
+    ADAPTIVE_GRID_MAX_AXIS, CvBase, CvColor, MAX_GRID_CELLS, MAX_GRID_INDICES, MAX_GRID_LEVELS,
+    PhaseSamples, PhasedEstimator, TRAIN_TILE, adaptive_grid, grid_fits,
 };
 use estimators::surrogate::{PixelMoments, surrogate_image};
 use estimators::table::AccumulatorTable;
@@ -410,7 +411,7 @@ impl Grid {
             }
             None => {
                 let longest = ext.max_element();
-                let mut n = (width.max(height) / 16).clamp(8, 128);
+                let mut n = adaptive_grid(width, height).0;
                 loop {
                     let r = |e: f32| ((n as f32 * e / longest).ceil() as u32).max(1);
                     let res = [r(ext.x), r(ext.y), r(ext.z)];
@@ -1602,7 +1603,9 @@ impl<'a> CvJob<'a> {
         let Some(estimator) = settings.estimator.phased() else {
             return Ok(None);
         };
-        let estimator = estimator.for_sampler(settings.sampler);
+        let estimator = estimator
+            .for_sampler(settings.sampler)
+            .for_image(scene.width, scene.height);
         if let Err((field, reason)) = estimator.validate() {
             return Err(RenderError::InvalidSetting { field, reason });
         }
