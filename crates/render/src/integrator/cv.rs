@@ -3134,16 +3134,25 @@ mod tests {
         assert!(Grid::new(bounds, Some([1, 1, 1]), MAX_GRID_LEVELS + 1, 8, 8).is_err());
         let a = Grid::new(bounds, None, 4, 4096, 4096).unwrap();
         assert!(a.cells() as u64 <= MAX_GRID_INDICES);
-        // Two levels leave the adaptive default's cells as they were: 128 on the longest
-        // axis for a 2048-pixel image (it was an error for a cube-shaped scene: 2^21 cells,
-        // now coarsened to fit).
+        // The adaptive default stops at `ADAPTIVE_GRID_MAX_AXIS` cells on the longest axis
+        // (a 2048-pixel image's `2048/16` would be 128), so even a cube-shaped scene with
+        // the most levels stays within the index limit.
         let cube = (Vec3::ZERO, Vec3::ONE);
         let g = Grid::new(bounds, None, 2, 2048, 1024).unwrap();
-        assert_eq!(g.resolution()[0] >> 2, 128);
-        let c = Grid::new(cube, None, 2, 2048, 2048).unwrap();
-        assert!(c.resolution()[0] >> 2 < 128 && (c.cells() as u64) <= MAX_GRID_INDICES);
-        let undivided: u64 = c.resolution().iter().map(|&r| u64::from(r >> 2)).product();
+        assert_eq!(g.resolution()[0] >> 2, ADAPTIVE_GRID_MAX_AXIS);
+        let c = Grid::new(cube, None, MAX_GRID_LEVELS, 2048, 2048).unwrap();
+        assert_eq!(c.resolution()[0] >> MAX_GRID_LEVELS, ADAPTIVE_GRID_MAX_AXIS);
+        assert!((c.cells() as u64) <= MAX_GRID_INDICES);
+        let undivided: u64 = c
+            .resolution()
+            .iter()
+            .map(|&r| u64::from(r >> MAX_GRID_LEVELS))
+            .product();
         assert!(undivided <= MAX_GRID_CELLS);
+        // Below the cap, `max(width, height)/16` cells, at least 8.
+        let small = Grid::new(cube, None, 2, 384, 256).unwrap();
+        assert_eq!(small.resolution()[0] >> 2, 24);
+        assert_eq!(Grid::new(cube, None, 0, 20, 20).unwrap().resolution()[0], 8);
     }
 
     /// The render phase's dense route ([`Policy::apply_dense`], `f32` rows) and the general
