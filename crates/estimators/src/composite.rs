@@ -47,6 +47,8 @@
 //! scenes and were not kept. [`combine_phase_images`] is the one combination the renderer's
 //! in-process driver and the farm's assembly both call.
 
+use std::borrow::Borrow;
+
 use nalgebra::{DMatrix, DVector};
 
 use crate::surrogate::PixelMoments;
@@ -349,14 +351,16 @@ pub fn rerender_image_cross(
 /// apply). Pixels with fewer than 2 samples in either set are left out. `None` when no pixel
 /// counts or a sum is not finite: then the sets are merged plainly.
 ///
-/// Pixels are summed in the iterator's order: the same order gives the same bits.
-pub fn phase_weight<'a>(
-    pixels: impl IntoIterator<Item = (&'a PixelMoments, &'a PixelMoments)>,
+/// Pixels are summed in the iterator's order: the same order gives the same bits. (The
+/// pairs may be references or values, e.g. sums read out of a film on the fly.)
+pub fn phase_weight<U: Borrow<PixelMoments>, C: Borrow<PixelMoments>>(
+    pixels: impl IntoIterator<Item = (U, C)>,
 ) -> Option<f64> {
     let eps = crate::metrics::REL_MSE_EPSILON;
     let (mut a, mut b) = (0.0f64, 0.0f64);
     let (mut nu, mut nc) = (0u64, 0u64);
     for (u, c) in pixels {
+        let (u, c) = (u.borrow(), c.borrow());
         if u.count < 2 || c.count < 2 {
             continue;
         }
@@ -543,7 +547,10 @@ mod tests {
         assert_eq!(combine_phases(&c, &c, None), c.merged(&c));
         // No pixel with two samples in both sets: no weight.
         assert_eq!(phase_weight([(&u, &c)]), None);
-        assert_eq!(phase_weight(std::iter::empty()), None);
+        assert_eq!(
+            phase_weight(std::iter::empty::<(PixelMoments, PixelMoments)>()),
+            None
+        );
     }
 
     #[test]
