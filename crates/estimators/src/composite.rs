@@ -44,8 +44,11 @@
 //! sums is nearly independent of any pixel's samples, so the bias that per-pixel weights from
 //! the same samples carry ([`rerender_image_cross`]) is negligible (`render`'s `cv_unbiased`
 //! tests); per-block weights (blocks of 8, 16 and 64 pixels) gained 0–4 % more on the test
-//! scenes and were not kept. [`combine_phase_images`] is the one combination the renderer's
-//! in-process driver and the farm's assembly both call.
+//! scenes and were not kept. [`phase_weight`] over all pixels in row-major order, then
+//! [`combine_phases`] per pixel, is the one combination: the farm's assembly calls it as
+//! [`combine_phase_images`], the renderer's in-process driver on its films' sums in place
+//! (`render::integrator::cv::combine_phase_films`); the workers' tests hold the two images
+//! to the same bits.
 
 use std::borrow::Borrow;
 

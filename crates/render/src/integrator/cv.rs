@@ -99,7 +99,7 @@ use estimators::cell::{
     CellAccumulator, ColorMode, ComponentLayout, CvSample, Technique, prefetch_read,
     training_weight,
 };
-use estimators::composite::{combine_phase_images, combine_phases, controlled_scale, phase_weight};
+use estimators::composite::{combine_phases, controlled_scale, phase_weight};
 use estimators::perlight::MeanContributionAccumulator;
 use estimators::solve::{CellCoefficients, CellHalves, SolvePolicy, SolveStatus};
 pub use estimators::spec::{
@@ -2749,7 +2749,7 @@ pub fn render_estimator_image(
         if traces_as_path(&job.ctx, PhaseKind::Apply, Some(&table)) {
             film.merge(&rfilm);
         } else {
-            report.uncontrolled_weight = combine_phase_films_into(&mut film, &rfilm, &mut cv_sum);
+            report.uncontrolled_weight = combine_phase_films(&mut film, &rfilm, &mut cv_sum);
         }
     }
     timings.render = t0.elapsed().as_secs_f64();
@@ -2780,28 +2780,19 @@ pub fn render_estimator_image(
     Ok((film, stats, report))
 }
 
-/// The image of a phased job: `plain`'s samples (surrogate and training, `path`'s) and
-/// `controlled`'s (the render phase with the CV) combined with one image-wide
-/// inverse-variance weight ([`estimators::composite::phase_weight`],
-/// [`estimators::composite::combine_phase_images`]), as the farm's assembly combines them,
-/// and the weight of `plain`'s samples (`None`: merged plainly). Both films cover the image.
-pub fn combine_phase_films(plain: &Film, controlled: &Film) -> (Film, Option<f64>) {
-    let (combined, w) = combine_phase_images(&film_moments(plain), &film_moments(controlled));
-    let out = Film {
-        pixels: combined.into_iter().map(Pixel::from).collect(),
-        rejected: plain.rejected + controlled.rejected,
-        ..*plain
-    };
-    (out, w)
-}
-
-/// [`combine_phase_films`] in place, with the same bits: `film` (the plain samples) becomes
-/// the combined image, and each pixel's render-phase CV sum in `cv_sum` is scaled to its
-/// share of the combined mean ([`controlled_scale`]). Two passes over the pixels and no
-/// copy of the image: at 1920×1080 the copies (the sums of both films, the combined sums,
-/// a new film) cost ≈ 2 s of one thread per job. Both films cover the image; `cv_sum` has a
-/// value per pixel.
-fn combine_phase_films_into(
+/// The image of a phased job, in place: `film` holds `path`'s samples (surrogate and
+/// training) and becomes their combination with `controlled`'s (the render phase with the
+/// CV) by one image-wide inverse-variance weight
+/// ([`estimators::composite::phase_weight`], then
+/// [`estimators::composite::combine_phases`] per pixel, in row-major order: the farm's
+/// assembly combines them with the same arithmetic, so the bits agree). Each pixel's
+/// render-phase CV sum in `cv_sum` is scaled to its share of the combined mean
+/// ([`controlled_scale`]). Returns the weight of `film`'s samples (`None`: merged plainly).
+/// Both films cover the image; `cv_sum` has a value per pixel.
+///
+/// Two passes over the pixels and no copy of the image (at 1920×1080 copying both films'
+/// sums out, combining them into a third copy and a new film took ≈ 2 s of one thread).
+pub fn combine_phase_films(
     film: &mut Film,
     controlled: &Film,
     cv_sum: &mut [[f64; 3]],
