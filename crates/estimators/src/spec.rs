@@ -610,7 +610,7 @@ impl PhasedEstimator {
     }
 }
 
-/// Most grid cells a job may ask for (undivided; the adaptive default coarsens to fit).
+/// Most grid cells a job may ask for (undivided; the adaptive default stays below it).
 pub const MAX_GRID_CELLS: u64 = 1 << 20;
 
 /// Most cell indices of a subdivided grid (grid cells × [`CELL_CHILDREN`]`^levels`): a
@@ -666,6 +666,14 @@ pub const CMS_GRID_LEVELS: u32 = 2;
 
 /// Most cells on the scene's longest axis of the adaptive grid ([`adaptive_grid`]).
 pub const ADAPTIVE_GRID_MAX_AXIS: u32 = 32;
+
+// The adaptive grid fits with any valid `grid_levels`: `(cap + 1)³` cells (an axis may round
+// up by one) subdivided `MAX_GRID_LEVELS` times are within both limits.
+const _: () = {
+    let axis = ADAPTIVE_GRID_MAX_AXIS as u64 + 1;
+    assert!(axis * axis * axis <= MAX_GRID_CELLS);
+    assert!(axis * axis * axis * CELL_CHILDREN.pow(MAX_GRID_LEVELS) <= MAX_GRID_INDICES);
+};
 
 /// The adaptive grid of a `width × height` image: `(n, extra)`, `n` cells on the scene's
 /// longest axis (the others proportionally, `render::integrator::cv::Grid`) and `extra`

@@ -82,8 +82,7 @@
 //! # Grid
 //! `grid_resolution = [nx, ny, nz]` regular cells over the scene bounds; the adaptive
 //! default gives the longest axis `max(width, height)/16` cells (clamped to
-//! 8…[`ADAPTIVE_GRID_MAX_AXIS`], fewer where the subdivisions would pass
-//! [`MAX_GRID_INDICES`]) and the others proportionally ([`adaptive_grid`]).
+//! 8…[`ADAPTIVE_GRID_MAX_AXIS`]) and the others proportionally ([`adaptive_grid`]).
 //! `cms` subdivides each cell `grid_levels` times (default 2, one more per doubling of
 //! `max(width, height)/16` past the cap: [`PhasedEstimator::for_image`]) for the camera's hits on glossy
 //! surfaces, 2×2×2 per level; every other vertex stays in the undivided cell, and the table
@@ -381,7 +380,7 @@ pub struct Grid {
 impl Grid {
     /// A grid of `res` cells (or the adaptive default for an image of `width × height`),
     /// each subdivided `levels` times, within [`grid_fits`]'s limits (the adaptive default
-    /// coarsens until it fits).
+    /// is within them for any `levels` up to [`MAX_GRID_LEVELS`]).
     pub fn new(
         bounds: (Vec3, Vec3),
         res: Option<[u32; 3]>,
@@ -410,16 +409,12 @@ impl Grid {
                 r
             }
             None => {
+                // At most `ADAPTIVE_GRID_MAX_AXIS` (+ 1 by rounding) cells per axis: within the
+                // limits with any valid `levels` (asserted where the cap is defined).
                 let longest = ext.max_element();
-                let mut n = adaptive_grid(width, height).0;
-                loop {
-                    let r = |e: f32| ((n as f32 * e / longest).ceil() as u32).max(1);
-                    let res = [r(ext.x), r(ext.y), r(ext.z)];
-                    if n == 1 || grid_fits(res, levels) {
-                        break res;
-                    }
-                    n -= 1;
-                }
+                let n = adaptive_grid(width, height).0 as f32;
+                let r = |e: f32| ((n * e / longest).ceil() as u32).max(1);
+                [r(ext.x), r(ext.y), r(ext.z)]
             }
         };
         if !grid_fits(res, levels) {
@@ -3139,10 +3134,11 @@ mod tests {
             }
         }
         assert_eq!(seen.len(), 12 * 8 * 20);
-        // Subdivisions count toward the index limit; the adaptive default coarsens instead.
+        // Subdivisions count toward the index limit; the adaptive default stays within it.
         assert!(Grid::new(bounds, Some([64, 64, 64]), 2, 8, 8).is_ok());
         assert!(Grid::new(bounds, Some([1024, 1024, 1]), 3, 8, 8).is_err());
         assert!(Grid::new(bounds, Some([1, 1, 1]), MAX_GRID_LEVELS + 1, 8, 8).is_err());
+        assert!(Grid::new(bounds, None, MAX_GRID_LEVELS + 1, 4096, 4096).is_err());
         let a = Grid::new(bounds, None, 4, 4096, 4096).unwrap();
         assert!(a.cells() as u64 <= MAX_GRID_INDICES);
         // The adaptive default stops at `ADAPTIVE_GRID_MAX_AXIS` cells on the longest axis
