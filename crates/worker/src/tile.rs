@@ -447,16 +447,14 @@ mod tests {
         local_equals_in_process_driver_sized(&cornell(), est, seed, max_depth, sampler, (48, 32))
     }
 
-    /// [`local_equals_in_process_driver_with`] for a `width × height` image of `scene`.
-    fn local_equals_in_process_driver_sized(
-        scene: &[u8],
-        est: EstimatorSpec,
+    /// The job of [`local_equals_in_process_driver_sized`]: 24 spp in one task per tile.
+    fn cv_job(
+        (width, height): (u32, u32),
         seed: u64,
         max_depth: i32,
         sampler: protocol::job::SamplerKind,
-        (width, height): (u32, u32),
-    ) -> Vec<f32> {
-        let j = ResolvedJob {
+    ) -> ResolvedJob {
+        ResolvedJob {
             width,
             height,
             spp: 24,
@@ -467,7 +465,19 @@ mod tests {
             hide_emitters: false,
             tile_size: 16,
             samples_per_task: 24,
-        };
+        }
+    }
+
+    /// [`local_equals_in_process_driver_with`] for a `width × height` image of `scene`.
+    fn local_equals_in_process_driver_sized(
+        scene: &[u8],
+        est: EstimatorSpec,
+        seed: u64,
+        max_depth: i32,
+        sampler: protocol::job::SamplerKind,
+        (width, height): (u32, u32),
+    ) -> Vec<f32> {
+        let j = cv_job((width, height), seed, max_depth, sampler);
         let p = Prepared::new(scene, BTreeMap::new(), &j, &est).unwrap();
         let farm = render_local(&p, &j).unwrap();
         let opts = render::tile::RenderOptions {
@@ -524,18 +534,7 @@ mod tests {
             min_fit_gain: None,
             ..CmsOptions::default()
         };
-        let j = ResolvedJob {
-            width,
-            height,
-            spp: 24,
-            seed: 9,
-            sampler: SamplerKind::Independent,
-            max_depth: 5,
-            rr_depth: 5,
-            hide_emitters: false,
-            tile_size: 16,
-            samples_per_task: 24,
-        };
+        let j = cv_job((width, height), 9, 5, SamplerKind::Independent);
         let est = EstimatorSpec::Cms(applied);
         let levels = est.phased_for(&j).map(|p| p.grid_levels());
         assert_eq!(levels, Some(CMS_GRID_LEVELS + 1));
