@@ -291,6 +291,22 @@ pub fn prefetch_read<T>(x: &T) {
     prefetch_ptr(x as *const T);
 }
 
+/// A hint to load every cache line of `x` (its first line, then one per 64 bytes to its
+/// end; no architectural effect).
+#[inline(always)]
+pub fn prefetch_lines<T>(x: &T) {
+    let start = (x as *const T).cast::<u8>();
+    let mut offset = 0;
+    while offset < std::mem::size_of::<T>() {
+        prefetch_ptr(start.wrapping_add(offset));
+        offset += 64;
+    }
+    // The last byte: `x` need not start on a line boundary.
+    if std::mem::size_of::<T>() > 0 {
+        prefetch_ptr(start.wrapping_add(std::mem::size_of::<T>() - 1));
+    }
+}
+
 /// A hint to load the cache line at `p`, which need not point to anything valid (a
 /// prefetch cannot fault).
 #[inline(always)]

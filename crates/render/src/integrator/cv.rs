@@ -95,8 +95,8 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
 use estimators::cell::{
-    CellAccumulator, ColorMode, ComponentLayout, CvSample, Technique, prefetch_read,
-    training_weight,
+    CellAccumulator, ColorMode, ComponentLayout, CvSample, Technique, prefetch_lines,
+    prefetch_read, training_weight,
 };
 use estimators::composite::{combine_phases, controlled_scale, phase_weight};
 use estimators::perlight::MeanContributionAccumulator;
@@ -883,17 +883,22 @@ impl TileCells {
     /// Adds logged samples to the cells, in order.
     ///
     /// In batches of [`PREFETCH_BATCH`]: the batch's cells are found (and made, in the
-    /// samples' order) and their partition entries prefetched
-    /// ([`CellAccumulator::prefetch_partition`]), then the samples are added in order. The
-    /// sums are the same; the entries' cache misses overlap.
+    /// samples' order) and their accumulators prefetched, then their partition entries
+    /// ([`CellAccumulator::prefetch_partition`], which reads the accumulator), then the
+    /// samples are added in order. The sums are the same; the cache misses overlap. (A
+    /// large image's tile meets tens of thousands of cells: reading each accumulator to
+    /// find its partition entry missed the cache once a record, one miss after another.)
     fn add_records(&mut self, log: &[TrainRecord], ctx: &CvContext<'_>) {
         let mut slots = [0usize; PREFETCH_BATCH];
         for batch in log.chunks(PREFETCH_BATCH) {
             for (r, slot) in batch.iter().zip(&mut slots) {
                 *slot = self.slot(r.key, ctx);
+                prefetch_lines(&self.cells[*slot]);
+            }
+            for (r, &slot) in batch.iter().zip(&slots) {
                 let partition = r.partition & !BSDF_TECHNIQUE;
                 if partition != NO_PARTITION
-                    && let CellAcc::Moments(acc) = &self.cells[*slot].1
+                    && let CellAcc::Moments(acc) = &self.cells[slot].1
                 {
                     acc.prefetch_partition(partition);
                 }
