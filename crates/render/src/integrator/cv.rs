@@ -1853,7 +1853,9 @@ impl<'a> CvJob<'a> {
             // `apart`: the film after the first half, the second half's own cells (`apart`),
             // the film after both, and their rays. Recorded straight into `cells`, a sample
             // adds to the sums already there: the probe's cells are not remade and merged
-            // (≈ 5 % of a 960×540 training pass).
+            // (≈ 5 % of a 960×540 training pass). `optimal_mis`'s halves keep the second apart
+            // (then merged) whether or not its split-half check reads it, so that the bits do
+            // not depend on the check.
             let halves_of = |pixels: Pixels, film: Film, cells: &mut TileCells, apart: bool| {
                 let (film, rays) = if mid > probe_end {
                     let (c, r) = record(probe_end..mid, Some(&film), pixels, std::mem::take(cells));
@@ -1876,7 +1878,7 @@ impl<'a> CvJob<'a> {
                 };
                 (film, second, r.film, rays + r.rays)
             };
-            let (first_film, second, f, r) = halves_of(set, film, &mut cells, check.is_some());
+            let (first_film, second, f, r) = halves_of(set, film, &mut cells, halves);
             (film, rays) = (f, rays + r);
             dropped = match (check, &second) {
                 (Some(min), Some(second)) => {
@@ -1909,8 +1911,11 @@ impl<'a> CvJob<'a> {
                         std::mem::take(&mut cells),
                     );
                     (cells, film, rays) = (c, r.film, rays + r.rays);
-                    let (_, _, f, r) = halves_of(Pixels::Unchecked, film, &mut cells, false);
+                    let (_, second, f, r) = halves_of(Pixels::Unchecked, film, &mut cells, halves);
                     (film, rays) = (f, rays + r);
+                    if let Some(second) = second {
+                        cells.absorb(second, &self.ctx);
+                    }
                 }
             }
         }
