@@ -1850,13 +1850,13 @@ impl<'a> CvJob<'a> {
             };
             // The two halves of `pixels` on top of `film`, the first half's samples added to
             // `cells` (none when the probe is the first half), the second half's too unless
-            // `apart`: the film after the first half, the second half's own cells (`apart`),
-            // the film after both, and their rays. Recorded straight into `cells`, a sample
-            // adds to the sums already there: the probe's cells are not remade and merged
-            // (≈ 5 % of a 960×540 training pass). `optimal_mis`'s halves keep the second apart
-            // (then merged) whether or not its split-half check reads it, so that the bits do
-            // not depend on the check.
-            let halves_of = |pixels: Pixels, film: Film, cells: &mut TileCells, apart: bool| {
+            // the job records `halves`: the film after the first half, the second half's own
+            // cells (with `halves`), the film after both, and their rays. Recorded straight
+            // into `cells`, a sample adds to the sums already there: the probe's cells are not
+            // remade and merged (≈ 5 % of a 960×540 training pass). `optimal_mis`'s halves keep
+            // the second apart (then merged) whether or not its split-half check reads it, so
+            // that the bits do not depend on the check.
+            let halves_of = |pixels: Pixels, film: Film, cells: &mut TileCells| {
                 let (film, rays) = if mid > probe_end {
                     let (c, r) = record(probe_end..mid, Some(&film), pixels, std::mem::take(cells));
                     *cells = c;
@@ -1864,13 +1864,13 @@ impl<'a> CvJob<'a> {
                 } else {
                     (film, 0)
                 };
-                let into = if apart {
+                let into = if halves {
                     TileCells::default()
                 } else {
                     std::mem::take(cells)
                 };
                 let (second, r) = record(mid..samples.end, Some(&film), pixels, into);
-                let second = if apart {
+                let second = if halves {
                     Some(second)
                 } else {
                     *cells = second;
@@ -1878,7 +1878,7 @@ impl<'a> CvJob<'a> {
                 };
                 (film, second, r.film, rays + r.rays)
             };
-            let (first_film, second, f, r) = halves_of(set, film, &mut cells, halves);
+            let (first_film, second, f, r) = halves_of(set, film, &mut cells);
             (film, rays) = (f, rays + r);
             dropped = match (check, &second) {
                 (Some(min), Some(second)) => {
@@ -1911,7 +1911,7 @@ impl<'a> CvJob<'a> {
                         std::mem::take(&mut cells),
                     );
                     (cells, film, rays) = (c, r.film, rays + r.rays);
-                    let (_, second, f, r) = halves_of(Pixels::Unchecked, film, &mut cells, halves);
+                    let (_, second, f, r) = halves_of(Pixels::Unchecked, film, &mut cells);
                     (film, rays) = (f, rays + r);
                     if let Some(second) = second {
                         cells.absorb(second, &self.ctx);
