@@ -101,6 +101,15 @@ pub struct SolvePolicy {
     /// `-∞` (the default) never falls back for this reason. Used by
     /// [`crate::table::AccumulatorTable::solve`]; [`solve`] itself ignores it.
     pub min_fit_gain: f64,
+    /// Smallest held-out share of a cross-fitted table's fits
+    /// ([`crate::table::SolvedTable::held_out_share`]) for them to be applied when their
+    /// held-out gain ([`crate::table::SolvedTable::held_out_gain`]) is below
+    /// [`Self::min_fit_gain`]; below both every cell of the table falls back
+    /// ([`FallbackReason::Overfitted`]). Fits whose held-out gain alone clears
+    /// `min_fit_gain` pay whatever their in-sample optimism. `-∞` (the default) never falls
+    /// back for this reason. Used by [`crate::table::AccumulatorTable::solve`]; [`solve`]
+    /// itself ignores it.
+    pub min_held_out_share: f64,
 }
 
 impl Default for SolvePolicy {
@@ -117,6 +126,7 @@ impl Default for SolvePolicy {
             max_condition: 1e12,
             min_image_gain: f64::NEG_INFINITY,
             min_fit_gain: f64::NEG_INFINITY,
+            min_held_out_share: f64::NEG_INFINITY,
         }
     }
 }
@@ -179,6 +189,11 @@ pub enum FallbackReason {
     /// variance to the samples they were not fitted on: they follow the training samples'
     /// noise (e.g. many lights with a few samples each).
     HeldOutLoss,
+    /// The fits of the whole cross-fitted table keep less than
+    /// [`SolvePolicy::min_held_out_share`] of their in-sample gain on held-out samples, and
+    /// their held-out gain is below [`SolvePolicy::min_fit_gain`]: they follow the training
+    /// samples' noise (a decision for the table, not for this cell).
+    Overfitted,
 }
 
 /// Outcome of a cell solve.
@@ -990,7 +1005,7 @@ pub const COEFFICIENTS_MAGIC: [u8; 4] = *b"CVCO";
 /// Encoding version of [`CellCoefficients`].
 pub const COEFFICIENTS_VERSION: u16 = 1;
 
-const FALLBACK_CODES: [FallbackReason; 11] = [
+const FALLBACK_CODES: [FallbackReason; 12] = [
     FallbackReason::Empty,
     FallbackReason::TooFewSamples,
     FallbackReason::TooFewEffectiveSamples,
@@ -1002,6 +1017,7 @@ const FALLBACK_CODES: [FallbackReason; 11] = [
     FallbackReason::LowFitGain,
     FallbackReason::NoReduction,
     FallbackReason::HeldOutLoss,
+    FallbackReason::Overfitted,
 ];
 
 impl CellCoefficients {

@@ -214,6 +214,15 @@ pub const MIN_DEPTH_STRATIFIED: u32 = 1;
 /// `cms`'s `ridge` with a per-pixel stratified (Sobol) sampler ([`CmsOptions`]).
 pub const RIDGE_STRATIFIED: f64 = 0.5;
 
+/// `cms`'s `min_held_out_share` with a per-pixel stratified (Sobol) sampler
+/// ([`CmsOptions`]; with independent numbers 0, no check). Fits whose held-out gain is below
+/// `min_fit_gain` must keep at least this share of their in-sample gain on held-out samples.
+/// Measured (`docs/bench/README.md`, "Fits that follow their samples' noise", 20-spp jobs,
+/// 6–8 seeds): 0.07–0.30 on 128×128 rooms with 256 small lights, whose fits gave 1.03–1.07×
+/// at equal spp and lost 12–15 % at equal time; 0.40–0.50 on `many-lights` and the 64-light
+/// room, whose fits pay (1.26×, 1.39× at equal spp).
+pub const HELD_OUT_SHARE_STRATIFIED: f64 = 0.35;
+
 /// `cms`'s `ridge` with independent numbers ([`CmsOptions`]).
 pub const RIDGE_INDEPENDENT: f64 = 0.1;
 
@@ -237,6 +246,7 @@ pub const CMS_GROUP_SAMPLES: u64 = 16;
 /// | `base` | `"mis"` \| `"balance"` | `"balance"` | values the fits are trained on and the render phase corrects in cells with coefficients: the job's MIS heuristic (= `path`) or balance, the paper's `f/p` ([`CvBase`]); elsewhere, and in the training samples' image, `path`'s either way. Balance by equal-spp measurements, both samplers (`docs/bench/README.md`) |
 /// | `min_image_gain` | f64 \| null | `3e-4` | the fits are applied only when they are predicted to remove at least this fraction of the image's per-sample (relative) variance, measured on the training samples ([`crate::table::predicted_image_gain`]); below it every cell falls back and the render phase is traced as `path`; a training tile whose own first 2 spp predict less than half of it (or less than half of `min_fit_gain`), with its cells' fits pooled in their undivided cells and fitted alone alike, stops recording (`render::integrator::cv::TRAIN_PROBE_SPP`, [`crate::table::AccumulatorTable::fits_pay_pooled_or_alone`]). null always applies them. Chosen by equal-spp and equal-time measurements (`docs/bench/README.md`) |
 /// | `min_fit_gain` | f64 \| null | `0.2` | the fits are applied only when they remove at least this fraction of the variance at the vertices they control (within each technique: the estimator takes one NEE and one BSDF sample, so the spread between the two techniques is no variance of it), over all cells, measured on the training samples ([`crate::table::predicted_fit_gain`]); below it every cell falls back and the render phase is traced as `path`. It bounds the equal-spp gain at `1/(1 − g)` whatever the image's noise is made of, so a small one cannot pay for the CV's per-sample cost; a training tile whose own first 2 spp predict less than half of it (or less than half of `min_image_gain`), pooled and fitted alone alike, stops recording (as for `min_image_gain`). null always applies them. Chosen by equal-spp and equal-time measurements (`docs/bench/README.md`) |
+/// | `min_held_out_share` | f64 \| null | null | where the fits' held-out gain (each cell's two halves fitted apart, each fit judged on the other half: [`crate::table::SolvedTable::held_out_gain`]) is below `min_fit_gain`, they are applied only when it keeps at least this share of their in-sample gain ([`crate::table::SolvedTable::held_out_share`]); below it every cell falls back (`Overfitted`) and the render phase is traced as `path`. It catches fits that follow their training samples' noise (many lights, a few samples of each per cell), whose in-sample fit gain overstates what the image gets. 0 never switches off. null = by the job's sampler ([`PhasedEstimator::for_sampler`]): **0.35 with the Sobol sampler** ([`HELD_OUT_SHARE_STRATIFIED`]), **0 with the independent one** (there such fits still gave 1.22× at equal spp, about their cost: rooms of 256 lights, `docs/bench/README.md`). Chosen by equal-spp and equal-time measurements |
 /// | `min_depth` | u32 \| null | null | the CV is trained and applied only at path vertices of at least this depth (0 = the camera hit); shallower vertices use the base estimator. null = by the job's sampler ([`PhasedEstimator::for_sampler`]): **1 with the Sobol sampler** (depth-2, direct-lighting jobs are then exactly `path`: the CV at the camera hit costs more than it gains against the per-pixel stratified Sobol samples), **0 with the independent one** (there the camera hit's direct lighting is where colour noise is: colour-lamp d2 3.58× at equal time). Chosen by equal-spp and equal-time measurements (`docs/bench/README.md`) |
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -272,6 +282,10 @@ pub struct CmsOptions {
     pub min_image_gain: Option<f64>,
     /// Smallest predicted fit gain for the fits to be applied; `None` always applies them.
     pub min_fit_gain: Option<f64>,
+    /// Smallest held-out share of the fits' gain, where their held-out gain is below
+    /// `min_fit_gain` (0: no check); `None` = by the sampler
+    /// ([`PhasedEstimator::for_sampler`]).
+    pub min_held_out_share: Option<f64>,
 }
 
 impl Default for CmsOptions {
@@ -291,6 +305,7 @@ impl Default for CmsOptions {
             min_depth: None,
             min_image_gain: Some(DEFAULT_MIN_IMAGE_GAIN),
             min_fit_gain: Some(DEFAULT_MIN_FIT_GAIN),
+            min_held_out_share: None,
         }
     }
 }
@@ -460,7 +475,8 @@ impl PhasedEstimator {
     /// The estimator with its sampler-dependent defaults filled in: `cms`'s `min_depth`
     /// `None` becomes [`MIN_DEPTH_STRATIFIED`] with the Sobol sampler (stratified per pixel)
     /// and 0 with independent numbers, its `ridge` `None` [`RIDGE_STRATIFIED`] and
-    /// [`RIDGE_INDEPENDENT`]. Every consumer of a job (phase planner, renderer, worker and
+    /// [`RIDGE_INDEPENDENT`], its `min_held_out_share` `None` [`HELD_OUT_SHARE_STRATIFIED`]
+    /// and 0 (no check). Every consumer of a job (phase planner, renderer, worker and
     /// coordinator solves) resolves through this, so they agree.
     pub fn for_sampler(self, sampler: SamplerKind) -> Self {
         let stratified = sampler == SamplerKind::Sobol;
@@ -475,6 +491,11 @@ impl PhasedEstimator {
                     RIDGE_STRATIFIED
                 } else {
                     RIDGE_INDEPENDENT
+                })),
+                min_held_out_share: Some(o.min_held_out_share.unwrap_or(if stratified {
+                    HELD_OUT_SHARE_STRATIFIED
+                } else {
+                    0.0
                 })),
                 ..o
             }),
@@ -527,6 +548,14 @@ impl PhasedEstimator {
             Self::PerLightCv(o) => Some((o.min_image_gain, o.min_fit_gain)),
             Self::OptimalMis(_) => None,
         };
+        if let Self::Cms(o) = self
+            && o.min_held_out_share.is_some_and(|g| !g.is_finite())
+        {
+            return Err((
+                "min_held_out_share",
+                "must be finite (or null for the sampler's default)",
+            ));
+        }
         if let Some((image, fit)) = gains {
             for (name, gain) in [("min_image_gain", image), ("min_fit_gain", fit)] {
                 if gain.is_some_and(|g| !g.is_finite()) {
@@ -588,6 +617,7 @@ impl PhasedEstimator {
                 min_samples: o.min_samples,
                 min_image_gain: o.min_image_gain.unwrap_or(f64::NEG_INFINITY),
                 min_fit_gain: o.min_fit_gain.unwrap_or(f64::NEG_INFINITY),
+                min_held_out_share: o.min_held_out_share.unwrap_or(HELD_OUT_SHARE_STRATIFIED),
                 min_group_samples: o.min_group_samples,
                 // Training records each cell's halves apart; a cell keeps its fits only
                 // where they remove variance out of sample.
@@ -777,6 +807,16 @@ mod tests {
             ..CmsOptions::default()
         });
         assert_eq!(fixed.for_sampler(independent).solve_policy().ridge, 2.0);
+        // The held-out share alike (0: no check with independent numbers).
+        let share = |e: PhasedEstimator| e.solve_policy().min_held_out_share;
+        assert_eq!(share(cms.for_sampler(sobol)), HELD_OUT_SHARE_STRATIFIED);
+        assert_eq!(share(cms), HELD_OUT_SHARE_STRATIFIED);
+        assert_eq!(share(cms.for_sampler(independent)), 0.0);
+        let set = PhasedEstimator::Cms(CmsOptions {
+            min_held_out_share: Some(0.6),
+            ..CmsOptions::default()
+        });
+        assert_eq!(share(set.for_sampler(independent)), 0.6);
         // Resolving twice changes nothing.
         let once = cms.for_sampler(independent);
         assert_eq!(once.for_sampler(sobol), once);
@@ -803,6 +843,13 @@ mod tests {
             ..CmsOptions::default()
         });
         assert_eq!(bad.validate().unwrap_err().0, "ridge");
+        for g in [f64::NAN, f64::NEG_INFINITY] {
+            let share = PhasedEstimator::Cms(CmsOptions {
+                min_held_out_share: Some(g),
+                ..CmsOptions::default()
+            });
+            assert_eq!(share.validate().unwrap_err().0, "min_held_out_share");
+        }
         for g in [f64::NAN, f64::INFINITY] {
             let image = PhasedEstimator::Cms(CmsOptions {
                 min_image_gain: Some(g),

@@ -390,7 +390,7 @@ fn solve_hierarchy(
     cells: &BTreeMap<u64, (CellAccumulator, Halves<'_>)>,
     policy: &SolvePolicy,
     threads: usize,
-) -> SolvedTable {
+) -> (SolvedTable, HeldOutSums) {
     let parent = |id: u64| cell_ancestor(id, policy.bins, 1);
     let mut levels: Vec<BTreeMap<u64, Node<'_>>> = vec![
         cells
@@ -423,6 +423,7 @@ fn solve_hierarchy(
         levels.push(up);
     }
     let half = policy.for_half();
+    let mut held_out = HeldOutSums::default();
     // Decisions by node key, level by level from the top.
     let mut kept: BTreeMap<u64, Decision> = BTreeMap::new();
     let mut out = SolvedTable::default();
@@ -454,6 +455,14 @@ fn solve_hierarchy(
         for ((&k, node), decision) in nodes.iter().zip(decisions) {
             if depth == 0 {
                 out.rejected += node.merged.rejected();
+                // A kept fit judged on the cell's halves: what it removes held out, and in
+                // sample (as [`FitSums::of`] counts it), summed in key order.
+                if let Decision::Fit(f) = &decision
+                    && let Some(h) = f.held_out(node)
+                {
+                    held_out.reduction += h;
+                    held_out.in_sample += variance_reduction(&node.merged, &f.full);
+                }
                 let co = match decision {
                     Decision::Fit(f) => f.full.clone(),
                     Decision::Fallback(co) => co.as_ref().clone(),
@@ -465,7 +474,17 @@ fn solve_hierarchy(
         }
         kept = next;
     }
-    out
+    (out, held_out)
+}
+
+/// What the cells' kept fits remove out of sample ([`solve_hierarchy`]): over the cells
+/// whose fit was judged on their two halves, the variance each half's fit removes from the
+/// other half ([`Fit::held_out`]), and the kept fit's in-sample reduction on the cell's
+/// samples.
+#[derive(Clone, Copy, Debug, Default)]
+struct HeldOutSums {
+    reduction: f64,
+    in_sample: f64,
 }
 
 /// A node's decision ([`solve_hierarchy`]): `own`, its parent's `up`, or neither.
@@ -552,9 +571,23 @@ pub struct SolvedTable {
     /// Predicted fit gain ([`predicted_fit_gain`]) when the cells recorded their value
     /// moments (not part of the wire encoding).
     pub fit_gain: Option<f64>,
-    /// Why every fitted cell fell back table-wide ([`FallbackReason::LowImageGain`] or
-    /// [`FallbackReason::LowFitGain`]), `None` when the fits stand (not part of the wire
-    /// encoding).
+    /// The held-out side of the fit gain, for a cross-fitted table
+    /// ([`CellHalves::CrossFitted`]; not part of the wire encoding):
+    /// `Σ_cells held-out reduction / Σ_cells value_variance`, the variance each half's fit
+    /// removes from the other half (over the fitted cells that have both halves), against
+    /// the fit gain's denominator ([`predicted_fit_gain`]). Summed in key order in the
+    /// table's solve, so the same bits on one worker or many.
+    pub held_out_gain: Option<f64>,
+    /// `Σ held-out reduction / Σ in-sample reduction` over the same cells: the part of the
+    /// fits' in-sample gain that survives out of sample. The halves' fits have half the
+    /// samples, so it is conservative. A small share says the fits follow their training
+    /// samples' noise (many lights, a few samples of each per cell): the in-sample fit gain
+    /// then overstates what the render phase gets ([`SolvePolicy::min_held_out_share`];
+    /// measured per scene in `docs/bench/README.md`). Not part of the wire encoding.
+    pub held_out_share: Option<f64>,
+    /// Why every fitted cell fell back table-wide ([`FallbackReason::LowImageGain`],
+    /// [`FallbackReason::LowFitGain`] or [`FallbackReason::Overfitted`]), `None` when the
+    /// fits stand (not part of the wire encoding).
     pub switched_off: Option<FallbackReason>,
 }
 
@@ -811,8 +844,11 @@ impl AccumulatorTable {
     /// cells that kept their coefficients); when the first
     /// is below [`SolvePolicy::min_image_gain`] every fitted cell falls back
     /// ([`FallbackReason::LowImageGain`]), else when the second is below
-    /// [`SolvePolicy::min_fit_gain`] ([`FallbackReason::LowFitGain`]): the render then pays
-    /// no CV work anywhere. An unknown gain makes no decision.
+    /// [`SolvePolicy::min_fit_gain`] ([`FallbackReason::LowFitGain`]), else, for a
+    /// cross-fitted table, when its held-out gain is below `min_fit_gain` and its held-out
+    /// share below [`SolvePolicy::min_held_out_share`] ([`FallbackReason::Overfitted`];
+    /// [`SolvedTable::held_out_share`]): the render then pays no CV work anywhere. An
+    /// unknown gain makes no decision.
     pub fn solve(&self, policy: &SolvePolicy, threads: usize) -> SolvedTable {
         fn par<T: Sync>(
             cells: &BTreeMap<u64, T>,
@@ -829,10 +865,15 @@ impl AccumulatorTable {
         let (mut out, sums, image) = match self {
             Self::Moments(t, image) if policy.halves == CellHalves::CrossFitted => {
                 let cells = pair_halves(t);
-                let out = solve_hierarchy(&cells, policy, threads);
+                let (mut out, held_out) = solve_hierarchy(&cells, policy, threads);
                 let merged: BTreeMap<u64, CellAccumulator> =
                     cells.into_iter().map(|(k, (a, _))| (k, a)).collect();
                 let sums = FitSums::of(&merged, &out.coefficients);
+                if sums.variance > 0.0 {
+                    out.held_out_gain = Some(held_out.reduction / sums.variance);
+                    out.held_out_share =
+                        (held_out.in_sample > 0.0).then(|| held_out.reduction / held_out.in_sample);
+                }
                 (out, Some(sums), *image)
             }
             Self::Moments(t, image) if policy.halves == CellHalves::Merged => {
@@ -880,6 +921,10 @@ impl AccumulatorTable {
             Some(FallbackReason::LowImageGain)
         } else if below(out.fit_gain, policy.min_fit_gain) {
             Some(FallbackReason::LowFitGain)
+        } else if below(out.held_out_gain, policy.min_fit_gain)
+            && below(out.held_out_share, policy.min_held_out_share)
+        {
+            Some(FallbackReason::Overfitted)
         } else {
             None
         };

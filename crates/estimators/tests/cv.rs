@@ -1827,3 +1827,154 @@ fn a_subdivided_cell_keeps_its_own_fit_or_its_parents_whichever_removes_more_hel
         SolveStatus::Solved
     );
 }
+
+/// A cross-fitted table (keys `2c`, `2c + 1`: cell `c`'s halves) of `cells` cells of
+/// [`recorded_cell`] samples with the given `slope` (0: values the ratios cannot explain),
+/// each half `n` samples of its own seed.
+fn crossed_table(cells: u64, n: usize, slope: f64, seed: u64) -> AccumulatorTable {
+    let t = (0..2 * cells)
+        .map(|key| {
+            let r = recorded_cell(5, 2, n, seed + key, slope);
+            (key, accumulate(&r, 5, 2, ColorMode::Rgb))
+        })
+        .collect();
+    AccumulatorTable::Moments(t, None)
+}
+
+/// The held-out figures are, over the cells whose own fit is kept (no hierarchy: `levels`
+/// 0), the variance each half's fit removes from the other half, against the fit gain's
+/// denominator (gain) and against the kept fits' in-sample reduction (share), computed here
+/// from the halves by brute force.
+#[test]
+fn the_held_out_gain_and_share_are_the_kept_fits_judged_on_the_other_half() {
+    let policy = SolvePolicy {
+        ridge: 0.5,
+        halves: CellHalves::CrossFitted,
+        ..SolvePolicy::default()
+    };
+    // Signal in some cells, noise in others, so that some fail their own check.
+    let AccumulatorTable::Moments(mut t, _) = crossed_table(4, 200, 1.5, 3100) else {
+        unreachable!()
+    };
+    let AccumulatorTable::Moments(noise, _) = crossed_table(4, 200, 0.0, 3200) else {
+        unreachable!()
+    };
+    t.extend(noise.into_iter().map(|(k, a)| (k + 8, a)));
+    let table = AccumulatorTable::Moments(t.clone(), None);
+    let solved = table.solve(&policy, 2);
+    let half = policy.for_half();
+    let (mut held_out, mut in_sample, mut variance) = (0.0, 0.0, 0.0);
+    let mut kept = 0;
+    for c in 0..8u64 {
+        let (even, odd) = (&t[&(2 * c)], &t[&(2 * c + 1)]);
+        let mut whole = even.clone();
+        whole.merge(odd).unwrap();
+        variance += value_variance(&whole);
+        let co = &solved.coefficients[&c];
+        if co.diagnostics().status == SolveStatus::Solved {
+            kept += 1;
+            held_out += variance_reduction(odd, &solve(even, &half))
+                + variance_reduction(even, &solve(odd, &half));
+            in_sample += variance_reduction(&whole, co);
+        }
+    }
+    assert!((1..8).contains(&kept), "{kept} of 8 cells kept");
+    let (gain, share) = (
+        solved.held_out_gain.unwrap(),
+        solved.held_out_share.unwrap(),
+    );
+    assert!(
+        (gain - held_out / variance).abs() <= 1e-12 * gain.abs(),
+        "{gain}"
+    );
+    assert!(
+        (share - held_out / in_sample).abs() <= 1e-12 * share.abs(),
+        "{share}"
+    );
+    // Held out, a fit removes less than in sample; the signal cells' fits keep most of it.
+    assert!(share > 0.5 && share < 1.0, "{share}");
+    assert!(gain < solved.fit_gain.unwrap());
+    // The same on one thread (sums in key order).
+    let one = table.solve(&policy, 1);
+    assert_eq!(one.held_out_gain, solved.held_out_gain);
+    assert_eq!(one.held_out_share, solved.held_out_share);
+    // Only cross-fitted tables have the figures.
+    let merged = table.solve(
+        &SolvePolicy {
+            halves: CellHalves::Merged,
+            ..policy
+        },
+        2,
+    );
+    assert_eq!((merged.held_out_gain, merged.held_out_share), (None, None));
+}
+
+/// Below `min_held_out_share` *and* with a held-out gain below `min_fit_gain`, every fitted
+/// cell falls back (`Overfitted`, round-tripping through the coefficient encoding); a
+/// held-out gain that clears `min_fit_gain` keeps the fits whatever the share; the in-sample
+/// fit gain's reason comes first.
+#[test]
+fn fits_that_keep_little_of_their_gain_held_out_fall_back_everywhere() {
+    let table = crossed_table(6, 150, 1.0, 3300);
+    let base = SolvePolicy {
+        ridge: 0.5,
+        halves: CellHalves::CrossFitted,
+        ..SolvePolicy::default()
+    };
+    let free = table.solve(&base, 2);
+    let (fit, gain, share) = (
+        free.fit_gain.unwrap(),
+        free.held_out_gain.unwrap(),
+        free.held_out_share.unwrap(),
+    );
+    assert!(
+        free.controls_any() && gain > 0.0 && gain < fit,
+        "{fit} {gain} {share}"
+    );
+    let with = |min_fit_gain: f64, min_held_out_share: f64| {
+        table.solve(
+            &SolvePolicy {
+                min_fit_gain,
+                min_held_out_share,
+                ..base
+            },
+            2,
+        )
+    };
+    let same = |t: &estimators::table::SolvedTable| {
+        assert!(encode_table(&t.coefficients) == encode_table(&free.coefficients));
+        assert_eq!(t.switched_off, None);
+    };
+    let off_by = |t: &estimators::table::SolvedTable, reason| {
+        assert_eq!(t.switched_off, Some(reason));
+        assert!(!t.controls_any());
+        for (k, co) in &t.coefficients {
+            let want = match free.coefficients[k].diagnostics().status {
+                SolveStatus::Solved => SolveStatus::Fallback(reason),
+                other => other,
+            };
+            assert_eq!(co.diagnostics().status, want, "cell {k}");
+        }
+    };
+    // Held-out gain below min_fit_gain (which the in-sample gain clears):
+    let between = (gain + fit) / 2.0;
+    off_by(&with(between, share + 0.01), FallbackReason::Overfitted);
+    same(&with(between, share - 0.01));
+    same(&with(between, f64::NEG_INFINITY));
+    // A held-out gain that clears min_fit_gain keeps the fits.
+    same(&with(gain - 1e-9, share + 0.5));
+    // The in-sample fit gain below its minimum: its own reason.
+    off_by(&with(fit + 0.01, share + 0.01), FallbackReason::LowFitGain);
+    let off = with(between, share + 0.01);
+    let (&k, co) = off
+        .coefficients
+        .iter()
+        .find(|(k, _)| free.coefficients[k].diagnostics().status == SolveStatus::Solved)
+        .unwrap();
+    let back = CellCoefficients::decode(&co.encode()).unwrap();
+    assert_eq!(
+        back.diagnostics().status,
+        SolveStatus::Fallback(FallbackReason::Overfitted),
+        "cell {k}"
+    );
+}
