@@ -457,6 +457,8 @@ async fn barrier(state: &AppState, job: &JobRow, phase: &PhaseRow) -> Result<Adv
                     rejected_samples: solved.rejected,
                     predicted_image_gain: solved.image_gain,
                     predicted_fit_gain: solved.fit_gain,
+                    predicted_held_out_gain: solved.held_out_gain,
+                    predicted_held_out_share: solved.held_out_share,
                 };
                 Ok((blob, stats))
             }

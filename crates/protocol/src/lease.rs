@@ -318,6 +318,14 @@ pub struct BarrierStats {
     /// `min_fit_gain` every cell falls back), when known.
     #[serde(default)]
     pub predicted_fit_gain: Option<f64>,
+    /// Held-out fit gain (`estimators::table::SolvedTable::held_out_gain`), when known.
+    #[serde(default)]
+    pub predicted_held_out_gain: Option<f64>,
+    /// Held-out share of the fits' gain (`estimators::table::SolvedTable::held_out_share`;
+    /// below the job's `min_held_out_share`, with a held-out gain below `min_fit_gain`, every
+    /// cell falls back), when known.
+    #[serde(default)]
+    pub predicted_held_out_share: Option<f64>,
 }
 
 #[cfg(test)]

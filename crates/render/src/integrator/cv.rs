@@ -194,6 +194,15 @@ pub struct EstimatorReport {
     /// ([`estimators::table::predicted_fit_gain`]); `null` when not computed. Below the
     /// job's `min_fit_gain` every cell falls back (`LowFitGain`).
     pub predicted_fit_gain: Option<f64>,
+    /// The fit gain held out: each cell's two halves fitted apart, each fit judged on the
+    /// other half ([`estimators::table::SolvedTable::held_out_gain`]); `null` when not
+    /// computed (`cms` only).
+    pub predicted_held_out_gain: Option<f64>,
+    /// The share of the fits' in-sample gain that the held-out check keeps
+    /// ([`estimators::table::SolvedTable::held_out_share`]); `null` when not computed. Below
+    /// the job's `min_held_out_share`, with a held-out gain below `min_fit_gain`, every cell
+    /// falls back (`Overfitted`).
+    pub predicted_held_out_share: Option<f64>,
     /// Emitters of the scene.
     pub lights: u32,
     /// Partitioned CV components (lights or light clusters, env included).
@@ -2735,6 +2744,8 @@ pub fn render_estimator_image(
         rejected_training_samples: solved.rejected,
         predicted_image_gain: solved.image_gain,
         predicted_fit_gain: solved.fit_gain,
+        predicted_held_out_gain: solved.held_out_gain,
+        predicted_held_out_share: solved.held_out_share,
         ..EstimatorReport::default()
     };
     for co in solved.coefficients.values() {
