@@ -236,7 +236,7 @@ def room(mats, shapes, left=(0.63, 0.065, 0.05), right=(0.14, 0.45, 0.091), whit
     shapes.append(rect("right", (1, 1, 1), [((0, 1, 0), -90)], (1, 1, 0)))    # right, faces -x
 
 
-def many_lights(n=8, seed=1):
+def many_lights(n=8, seed=1, res=256):
     rng = random.Random(seed)
     mats, shapes = {}, []
     room(mats, shapes)
@@ -265,7 +265,7 @@ def many_lights(n=8, seed=1):
                                emitter=[scale * v for v in c]))
     return {
         "camera": camera((0, 1, 3.9), (0, 1, 0), 39.3),
-        "film": {"width": 256, "height": 256},
+        "film": {"width": res, "height": res},
         "integrator": {"max_depth": 5, "rr_depth": 5},
         "materials": mats,
         "shapes": shapes,
@@ -560,6 +560,7 @@ def main():
         "cornell-box": lambda: (cornell_box(a.cbox_dir), []),
         "veach-mis": lambda: (veach_mis(), []),
         "many-lights": lambda: (many_lights(), []),
+        "many-lights-256": lambda: (many_lights(16, seed=2, res=128), []),
         "envmap": lambda: (envmap(), ["museum.exr"]),
         "colour-lamp": lambda: (colour_lamp(), []),
         "checkers": lambda: (checkers(), []),

@@ -5,17 +5,18 @@ mod common;
 
 use common::*;
 
-const EXPECTED: [&str; 6] = [
+const EXPECTED: [&str; 7] = [
     "checkers",
     "colour-lamp",
     "cornell-box",
     "envmap",
     "many-lights",
+    "many-lights-256",
     "veach-mis",
 ];
 
 #[test]
-fn the_six_example_scenes_are_shipped_and_small() {
+fn the_example_scenes_are_shipped_and_small() {
     let names = shipped_scenes();
     for name in EXPECTED {
         assert!(
@@ -88,6 +89,7 @@ fn every_shipped_scene_renders_finite_and_not_black() {
             "colour-lamp" => 3,
             "veach-mis" => 4,
             "many-lights" => 64,
+            "many-lights-256" => 256,
             _ => emitters,
         };
         assert_eq!(
