@@ -371,7 +371,9 @@ impl Fit {
 }
 
 /// Solves the cells of a cross-fitted table ([`CellHalves::CrossFitted`]) over their
-/// hierarchy ([`SolvePolicy::levels`]; 0: the cells alone).
+/// hierarchy ([`SolvePolicy::levels`]; 0: the cells alone). Also returns, per cell whose
+/// kept fit was judged on its two halves, the variance each half's fit removes from the
+/// other half ([`Fit::held_out`]; [`SolvedTable::held_out_gain`]).
 ///
 /// Every node (cell or ancestor) is fitted on its samples and on each half. From the
 /// coarsest level down, a node keeps, of its own fit and the fit its parent kept, the one
@@ -390,7 +392,7 @@ fn solve_hierarchy(
     cells: &BTreeMap<u64, (CellAccumulator, Halves<'_>)>,
     policy: &SolvePolicy,
     threads: usize,
-) -> (SolvedTable, HeldOutSums) {
+) -> (SolvedTable, BTreeMap<u64, f64>) {
     let parent = |id: u64| cell_ancestor(id, policy.bins, 1);
     let mut levels: Vec<BTreeMap<u64, Node<'_>>> = vec![
         cells
@@ -423,7 +425,7 @@ fn solve_hierarchy(
         levels.push(up);
     }
     let half = policy.for_half();
-    let mut held_out = HeldOutSums::default();
+    let mut held_out = BTreeMap::new();
     // Decisions by node key, level by level from the top.
     let mut kept: BTreeMap<u64, Decision> = BTreeMap::new();
     let mut out = SolvedTable::default();
@@ -455,13 +457,11 @@ fn solve_hierarchy(
         for ((&k, node), decision) in nodes.iter().zip(decisions) {
             if depth == 0 {
                 out.rejected += node.merged.rejected();
-                // A kept fit judged on the cell's halves: what it removes held out, and in
-                // sample (as [`FitSums::of`] counts it), summed in key order.
+                // A kept fit judged on the cell's halves: what it removes held out.
                 if let Decision::Fit(f) = &decision
                     && let Some(h) = f.held_out(node)
                 {
-                    held_out.reduction += h;
-                    held_out.in_sample += variance_reduction(&node.merged, &f.full);
+                    held_out.insert(k, h);
                 }
                 let co = match decision {
                     Decision::Fit(f) => f.full.clone(),
@@ -475,16 +475,6 @@ fn solve_hierarchy(
         kept = next;
     }
     (out, held_out)
-}
-
-/// What the cells' kept fits remove out of sample ([`solve_hierarchy`]): over the cells
-/// whose fit was judged on their two halves, the variance each half's fit removes from the
-/// other half ([`Fit::held_out`]), and the kept fit's in-sample reduction on the cell's
-/// samples.
-#[derive(Clone, Copy, Debug, Default)]
-struct HeldOutSums {
-    reduction: f64,
-    in_sample: f64,
 }
 
 /// A node's decision ([`solve_hierarchy`]): `own`, its parent's `up`, or neither.
@@ -620,7 +610,7 @@ pub fn predicted_image_gain(
     coefficients: &BTreeMap<u64, CellCoefficients>,
     image: Option<f64>,
 ) -> Option<f64> {
-    FitSums::of(cells, coefficients).image_gain(image)
+    FitSums::of(cells, coefficients, &BTreeMap::new()).image_gain(image)
 }
 
 /// Predicted fraction of the controlled vertices' variance that the fits remove:
@@ -642,31 +632,42 @@ pub fn predicted_fit_gain(
     cells: &BTreeMap<u64, CellAccumulator>,
     coefficients: &BTreeMap<u64, CellCoefficients>,
 ) -> Option<f64> {
-    FitSums::of(cells, coefficients).fit_gain()
+    FitSums::of(cells, coefficients, &BTreeMap::new()).fit_gain()
 }
 
-/// The two sums behind [`predicted_image_gain`] and [`predicted_fit_gain`], made in one
+/// The sums behind [`predicted_image_gain`], [`predicted_fit_gain`] and the held-out
+/// figures ([`SolvedTable::held_out_gain`], [`SolvedTable::held_out_share`]), made in one
 /// pass over the cells in key order.
+#[derive(Default)]
 struct FitSums {
     /// `Σ_cells variance_reduction` (cells with coefficients).
     reduction: f64,
     /// `Σ_cells value_variance` (all cells).
     variance: f64,
+    /// `Σ` held-out reduction over the cells judged on their halves.
+    held_out: f64,
+    /// `Σ variance_reduction` over the same cells.
+    held_out_in_sample: f64,
 }
 
 impl FitSums {
+    /// `held_out`: per cell judged on its halves, what its kept fit removes held out (empty
+    /// for a table without halves).
     fn of(
         cells: &BTreeMap<u64, CellAccumulator>,
         coefficients: &BTreeMap<u64, CellCoefficients>,
+        held_out: &BTreeMap<u64, f64>,
     ) -> Self {
-        let mut sums = Self {
-            reduction: 0.0,
-            variance: 0.0,
-        };
+        let mut sums = Self::default();
         for (k, a) in cells {
             sums.variance += crate::solve::value_variance(a);
             if let Some(co) = coefficients.get(k) {
-                sums.reduction += variance_reduction(a, co);
+                let r = variance_reduction(a, co);
+                sums.reduction += r;
+                if let Some(h) = held_out.get(k) {
+                    sums.held_out += h;
+                    sums.held_out_in_sample += r;
+                }
             }
         }
         sums
@@ -679,10 +680,7 @@ impl FitSums {
         cells: &BTreeMap<u64, MeanContributionAccumulator>,
         coefficients: &BTreeMap<u64, CellCoefficients>,
     ) -> Option<Self> {
-        let mut sums = Self {
-            reduction: 0.0,
-            variance: 0.0,
-        };
+        let mut sums = Self::default();
         for (k, a) in cells {
             let p = a.prediction()?;
             sums.variance += p.variance;
@@ -700,6 +698,17 @@ impl FitSums {
 
     fn fit_gain(&self) -> Option<f64> {
         (self.variance > 0.0).then(|| self.reduction / self.variance)
+    }
+
+    /// `(held-out gain, held-out share)` ([`SolvedTable::held_out_gain`],
+    /// [`SolvedTable::held_out_share`]); both `None` without a positive variance.
+    fn held_out_gains(&self) -> (Option<f64>, Option<f64>) {
+        if !(self.variance > 0.0) {
+            return (None, None);
+        }
+        let share =
+            (self.held_out_in_sample > 0.0).then(|| self.held_out / self.held_out_in_sample);
+        (Some(self.held_out / self.variance), share)
     }
 }
 
@@ -868,12 +877,8 @@ impl AccumulatorTable {
                 let (mut out, held_out) = solve_hierarchy(&cells, policy, threads);
                 let merged: BTreeMap<u64, CellAccumulator> =
                     cells.into_iter().map(|(k, (a, _))| (k, a)).collect();
-                let sums = FitSums::of(&merged, &out.coefficients);
-                if sums.variance > 0.0 {
-                    out.held_out_gain = Some(held_out.reduction / sums.variance);
-                    out.held_out_share =
-                        (held_out.in_sample > 0.0).then(|| held_out.reduction / held_out.in_sample);
-                }
+                let sums = FitSums::of(&merged, &out.coefficients, &held_out);
+                (out.held_out_gain, out.held_out_share) = sums.held_out_gains();
                 (out, Some(sums), *image)
             }
             Self::Moments(t, image) if policy.halves == CellHalves::Merged => {
@@ -882,7 +887,7 @@ impl AccumulatorTable {
                 let (merged, members) =
                     undivided(pair_halves(t).into_iter().map(|(k, (a, _))| (k, a)), policy);
                 let coarse = par(&merged, threads, |a| (solve(a, policy), a.rejected()));
-                let sums = FitSums::of(&merged, &coarse.coefficients);
+                let sums = FitSums::of(&merged, &coarse.coefficients, &BTreeMap::new());
                 let mut out = SolvedTable {
                     rejected: coarse.rejected,
                     ..SolvedTable::default()
@@ -896,7 +901,7 @@ impl AccumulatorTable {
             }
             Self::Moments(t, image) => {
                 let out = par(t, threads, |a| (solve(a, policy), a.rejected()));
-                let sums = FitSums::of(t, &out.coefficients);
+                let sums = FitSums::of(t, &out.coefficients, &BTreeMap::new());
                 (out, Some(sums), *image)
             }
             Self::Mean(t, image) => {
