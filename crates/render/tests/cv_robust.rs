@@ -418,7 +418,7 @@ fn the_default_switch_drops_useless_fits_and_keeps_useful_ones() {
 /// here at 96×96): the fits' in-sample gain clears `min_fit_gain`, but held out (each half's
 /// fits on the other half) they keep a tenth of it, so under the Sobol sampler the job
 /// switches them off (`Overfitted`) and renders `path`'s image; such fits gave 1.03× at
-/// equal spp for +13 % of time (`docs/bench/README.md`). With the check off (`0`), the same
+/// equal spp for +13…+17 % of time (`docs/bench/README.md`). With the check off (`0`), the same
 /// training applies them. The many-light scenes whose fits pay keep a share of 0.4 or more
 /// (the calibration test above; `many-lights`' is measured in the docs).
 #[test]
