@@ -18,6 +18,8 @@ use crate::math::Ray;
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Camera {
     to_world: Mat4,
+    /// `to_world`'s inverse ([`Self::film_position`]).
+    to_camera: Mat4,
     origin: Vec3,
     /// tan(fov_x / 2).
     tan_half_x: f32,
@@ -36,6 +38,7 @@ impl Camera {
         let aspect = film.width as f32 / film.height as f32;
         Self {
             to_world: camera.to_world,
+            to_camera: camera.to_world.inverse(),
             origin: camera.to_world.transform_point3(Vec3::ZERO),
             tan_half_x,
             tan_half_y: tan_half_x / aspect,
@@ -90,6 +93,23 @@ impl Camera {
     }
 }
 
+impl Camera {
+    /// The film position (pixels, as [`Self::ray`] takes them) that world point `p` projects
+    /// to: the inverse of [`Self::ray`] along its ray. `None` for a point in or behind the
+    /// camera's plane (or a non-finite one). Positions outside `[0, width) × [0, height)` are
+    /// off the image.
+    pub fn film_position(&self, p: Vec3) -> Option<Vec2> {
+        let q = self.to_camera.transform_point3(p);
+        if q.z.is_nan() || q.z <= 0.0 || !q.is_finite() {
+            return None;
+        }
+        // `ray`: d_cam ∝ ((1 − 2 sx) · tan_half_x, (1 − 2 sy) · tan_half_y, 1).
+        let sx = 0.5 * (1.0 - q.x / (q.z * self.tan_half_x));
+        let sy = 0.5 * (1.0 - q.y / (q.z * self.tan_half_y));
+        Some(Vec2::new(sx * self.width as f32, sy * self.height as f32))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -107,6 +127,47 @@ mod tests {
                 height: h,
             },
         )
+    }
+
+    /// `film_position` inverts `ray`: points along the ray through a film position project
+    /// back to it, under a scaling, rotating and translating `to_world`; points behind the
+    /// camera have none.
+    #[test]
+    fn film_position_inverts_the_ray() {
+        let (w, h) = (64, 48);
+        let to_world = Mat4::from_scale_rotation_translation(
+            Vec3::splat(2.0),
+            glam::Quat::from_euler(glam::EulerRot::XYZ, 0.3, -1.1, 0.4),
+            Vec3::new(1.0, -2.0, 3.0),
+        );
+        let c = Camera::new(
+            &scene::Camera {
+                to_world,
+                fov_x_deg: 50.0,
+                near_clip: 0.1,
+                far_clip: 1e4,
+            },
+            &scene::Film {
+                width: w,
+                height: h,
+            },
+        );
+        for (x, y) in [
+            (0.0, 0.0),
+            (32.0, 24.0),
+            (63.9, 0.5),
+            (10.25, 47.75),
+            (-5.0, 60.0),
+        ] {
+            let f = Vec2::new(x, y);
+            let r = c.ray(f);
+            for t in [0.5, 3.0, 40.0] {
+                let back = c.film_position(r.o + r.d * t).expect("in front");
+                assert!((back - f).length() < 1e-3, "{f} -> {back} at t = {t}");
+            }
+            assert_eq!(c.film_position(c.origin() - r.d * 2.0), None);
+        }
+        assert_eq!(c.film_position(Vec3::NAN), None);
     }
 
     #[test]

@@ -82,6 +82,13 @@ pub(crate) struct MeshLight {
 }
 
 impl MeshLight {
+    /// Calls `f` with each (non-degenerate) triangle's corners.
+    pub(crate) fn for_each_triangle(&self, mut f: impl FnMut([Vec3; 3])) {
+        for t in &self.tris {
+            f([t.p0, t.p0 + t.e1, t.p0 + t.e2]);
+        }
+    }
+
     /// Builds the light from a world-space mesh.
     pub(crate) fn new(mesh: &scene::Mesh, radiance: Vec3) -> Self {
         let mut tris = Vec::with_capacity(mesh.indices.len());

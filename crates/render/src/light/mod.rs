@@ -285,6 +285,30 @@ impl Lights {
         }
     }
 
+    /// Calls `f` with point sets whose convex hulls together contain every finite emitter's
+    /// surface: each triangle of an emitting mesh (its three corners), each emitting
+    /// sphere's bounding box (eight corners). The environment, at infinity, has none.
+    pub fn for_each_emitter_hull(&self, mut f: impl FnMut(&[Vec3])) {
+        for light in &self.lights {
+            match light {
+                Light::Mesh(m) => m.for_each_triangle(|t| f(&t)),
+                Light::Sphere(s) => {
+                    let r = Vec3::splat(s.radius.abs());
+                    let (lo, hi) = (s.center - r, s.center + r);
+                    let corners: [Vec3; 8] = std::array::from_fn(|i| {
+                        Vec3::new(
+                            if i & 1 == 0 { lo.x } else { hi.x },
+                            if i & 2 == 0 { lo.y } else { hi.y },
+                            if i & 4 == 0 { lo.z } else { hi.z },
+                        )
+                    });
+                    f(&corners);
+                }
+                Light::Env => {}
+            }
+        }
+    }
+
     /// Samples a point on `light` as seen from `p` with `u ∈ [0, 1)²`. The pdf is in solid
     /// angle at `p` and **excludes** the selection pmf. `None` for a failed sample (back side,
     /// degenerate geometry, invalid index, all-black env map).
