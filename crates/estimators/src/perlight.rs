@@ -203,30 +203,61 @@ impl MeanContributionAccumulator {
     /// record. A cell without weight predicts no change.
     pub fn prediction(&self) -> Option<MeanPrediction> {
         let v = self.weighted?;
-        let mut big_a = [0.0f64; CHANNELS];
-        for (_, a) in self.alphas() {
-            for c in 0..CHANNELS {
-                big_a[c] += a[c];
-            }
-        }
-        let mut delta = 0.0;
+        let alphas: Vec<(u32, [f64; CHANNELS])> = self.alphas().collect();
         let mut variance = 0.0;
         for c in 0..CHANNELS {
-            let ac = big_a[c];
-            let mut d = ac * ac * v.w + 2.0 * ac * v.wf[c];
-            for ((_, a), e) in self.alphas().zip(&self.entries) {
-                let a = a[c];
-                d += a * (a * e.wss - 2.0 * ac * e.ws - 2.0 * e.wsf[c]);
-            }
-            delta += d;
             if v.w > 0.0 {
                 variance += (v.wff[c] - v.wf[c] * v.wf[c] / v.w).max(0.0);
             }
         }
         Some(MeanPrediction {
-            reduction: -delta,
+            reduction: -self.change(&v, &alphas),
             variance,
         })
+    }
+
+    /// What the coefficients fitted on `fit` (its light means, as
+    /// [`mean_contribution_coefficients`] would apply them) remove from this accumulator's
+    /// weighted variance: `−Δ` of the module docs with `fit`'s `α` and these sums. Where the
+    /// two are a cell's two halves this is a held-out reduction: the means carry none of
+    /// these vertices' noise. `None` where either is a version-1 record.
+    pub fn held_out_reduction(&self, fit: &Self) -> Option<f64> {
+        let v = self.weighted?;
+        fit.weighted?;
+        let alphas: Vec<(u32, [f64; CHANNELS])> = fit.alphas().collect();
+        Some(-self.change(&v, &alphas))
+    }
+
+    /// `Δ` over the channels (module docs) with the coefficients `alphas` (in light order)
+    /// and this accumulator's sums `v` and entries; a light without an entry here has no
+    /// `WS`, `WSS`, `WSF`.
+    fn change(&self, v: &VertexSums, alphas: &[(u32, [f64; CHANNELS])]) -> f64 {
+        let mut big_a = [0.0f64; CHANNELS];
+        for (_, a) in alphas {
+            for c in 0..CHANNELS {
+                big_a[c] += a[c];
+            }
+        }
+        let none = Entry::default();
+        let entries: Vec<&Entry> = alphas
+            .iter()
+            .map(|(id, _)| {
+                self.ids
+                    .binary_search(id)
+                    .map_or(&none, |slot| &self.entries[slot])
+            })
+            .collect();
+        let mut delta = 0.0;
+        for c in 0..CHANNELS {
+            let ac = big_a[c];
+            let mut d = ac * ac * v.w + 2.0 * ac * v.wf[c];
+            for ((_, a), e) in alphas.iter().zip(&entries) {
+                let a = a[c];
+                d += a * (a * e.wss - 2.0 * ac * e.ws - 2.0 * e.wsf[c]);
+            }
+            delta += d;
+        }
+        delta
     }
 
     /// Adds `other` into `self` (element-wise); fails if the light counts differ.
@@ -438,9 +469,14 @@ mod tests {
 
     /// `Δ` by its definition, vertex by vertex.
     fn direct_reduction(vertices: &[Vertex], lights: u32) -> f64 {
-        let n = vertices.len() as f64;
+        direct_reduction_with(vertices, vertices, lights)
+    }
+
+    /// `Δ` over `vertices` with the light means of `fitted_on`, vertex by vertex.
+    fn direct_reduction_with(vertices: &[Vertex], fitted_on: &[Vertex], lights: u32) -> f64 {
+        let n = fitted_on.len() as f64;
         let mut alpha = vec![[0.0f64; 3]; lights as usize];
-        for (_, sel, f) in vertices {
+        for (_, sel, f) in fitted_on {
             if let Some((k, _)) = sel {
                 for c in 0..3 {
                     alpha[*k as usize][c] += f[c] / n;
@@ -485,6 +521,42 @@ mod tests {
             // Terms are at most w·(A + α s)² + 2 w F (A + α s) with A, α ≤ 5, s ≤ 8.
             let scale = total_w * 5e3;
             prop_assert!((got - want).abs() <= 1e-9 * scale.max(1.0), "{} vs {}", got, want);
+        }
+
+        /// A held-out reduction is the definition over one half's vertices with the other
+        /// half's light means (lights the fitting half never selected have `α = 0`), both
+        /// ways; a version-1 record on either side gives none.
+        #[test]
+        fn held_out_reduction_is_the_vertex_sum_with_the_other_halfs_means(
+            vs in proptest::collection::vec(
+                (0.0f64..100.0, proptest::option::of((0u32..4, 1.0f64..8.0)),
+                 proptest::array::uniform3(0.0f64..5.0)),
+                2..60,
+            ),
+            split in 1usize..59,
+        ) {
+            let split = split.min(vs.len() - 1);
+            let (first, second) = vs.split_at(split);
+            let mut a = MeanContributionAccumulator::new(4);
+            let mut b = MeanContributionAccumulator::new(4);
+            for (w, sel, f) in first {
+                prop_assert!(a.record(*w, *sel, *f));
+            }
+            for (w, sel, f) in second {
+                prop_assert!(b.record(*w, *sel, *f));
+            }
+            let scale = vs.iter().map(|v| v.0).sum::<f64>() * 5e3;
+            for (held, fit, want) in [
+                (&b, &a, direct_reduction_with(second, first, 4)),
+                (&a, &b, direct_reduction_with(first, second, 4)),
+            ] {
+                let got = held.held_out_reduction(fit).unwrap();
+                prop_assert!((got - want).abs() <= 1e-9 * scale.max(1.0), "{} vs {}", got, want);
+            }
+            let mut old = a.clone();
+            old.weighted = None;
+            prop_assert!(old.held_out_reduction(&b).is_none());
+            prop_assert!(b.held_out_reduction(&old).is_none());
         }
     }
 

@@ -110,6 +110,10 @@ pub struct SolvePolicy {
     /// back for this reason. Used by [`crate::table::AccumulatorTable::solve`]; [`solve`]
     /// itself ignores it.
     pub min_held_out_share: f64,
+    /// Whether a held-out share below [`Self::min_held_out_share`] switches the fits off
+    /// whatever their held-out gain (`per_light_cv`: its gain is over the NEE estimates it
+    /// controls, a part of the image's variance that can be small while the gain is large).
+    pub held_out_share_alone: bool,
 }
 
 impl Default for SolvePolicy {
@@ -127,6 +131,7 @@ impl Default for SolvePolicy {
             min_image_gain: f64::NEG_INFINITY,
             min_fit_gain: f64::NEG_INFINITY,
             min_held_out_share: f64::NEG_INFINITY,
+            held_out_share_alone: false,
         }
     }
 }
@@ -191,8 +196,9 @@ pub enum FallbackReason {
     HeldOutLoss,
     /// The fits of the whole cross-fitted table keep less than
     /// [`SolvePolicy::min_held_out_share`] of their in-sample gain on held-out samples, and
-    /// their held-out gain is below [`SolvePolicy::min_fit_gain`]: they follow the training
-    /// samples' noise (a decision for the table, not for this cell).
+    /// their held-out gain is below [`SolvePolicy::min_fit_gain`] (or the share decides
+    /// alone: [`SolvePolicy::held_out_share_alone`], `per_light_cv`'s cell means): they follow
+    /// the training samples' noise (a decision for the table, not for this cell).
     Overfitted,
 }
 

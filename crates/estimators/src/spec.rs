@@ -321,6 +321,7 @@ impl Default for CmsOptions {
 /// | `surrogate_spp` | u32 | 1 | samples per pixel of the surrogate image (only with `relative`; kept in the image) |
 /// | `min_image_gain` | f64 \| null | `3e-4` | as `cms`'s: the cells' coefficients are applied only when the cells that keep them are predicted to remove at least this fraction of the image's per-sample (relative) variance; below it every cell falls back and the render phase is traced as `path`. null always applies them |
 /// | `min_fit_gain` | f64 \| null | `0.2` | as `cms`'s, over the NEE estimates the CV controls: below it every cell falls back. null always applies them |
+/// | `min_held_out_share` | f64 \| null | `0.8` | training records each cell's two halves; each half's light means are judged on the other half's vertices ([`crate::perlight::MeanContributionAccumulator::held_out_reduction`]). Where the kept cells' held-out reduction is below this share of their in-sample one ([`crate::table::SolvedTable::held_out_share`]), every cell falls back (`Overfitted`, whatever the gains): the means follow their few vertices' noise (many lights, a few samples of each per cell). null never switches off. Measured: 0.64–0.73 on a room of 256 small lamps (1.07× at equal spp, 0.86× at equal time), 0.87–1.0 where the means pay (`docs/bench/README.md`, [`PER_LIGHT_HELD_OUT_SHARE`]) |
 ///
 /// A cell keeps its coefficients only where its own training vertices predict they reduce
 /// its weighted variance ([`crate::solve::FallbackReason::NoReduction`] otherwise): the
@@ -344,7 +345,18 @@ pub struct PerLightCvOptions {
     pub min_image_gain: Option<f64>,
     /// Smallest predicted fit gain for the coefficients to be applied; `None` always.
     pub min_fit_gain: Option<f64>,
+    /// Smallest held-out share of the kept cells' reduction; `None`: no check.
+    pub min_held_out_share: Option<f64>,
 }
+
+/// `per_light_cv`'s default `min_held_out_share`. Measured (`cvfarm render --estimator
+/// per_light_cv --max-depth 5 --spp 20…32 --stats`, seeds 3 and 20–22): 0.64–0.78 on
+/// `scenes/many-lights-256` (256 lamps, 128×128; 0.61–0.65 at 256×256, 0.34–0.50 at 96×96),
+/// whose means gave 1.07× at equal spp for +19 % of time; 0.86–0.88 on `many-lights` (64
+/// lamps, 256×256, 1.28× at equal spp; 0.81–0.83 at 128×128, 0.79–0.81 at 96×96), 0.94–0.96
+/// on Mitsuba's `manylights-4`, 0.97–1.0 on `colour-lamp` and `veach-mis`. A false switch
+/// costs the surrogate and the training's recording (≈ 2 %), a false keep up to 14 %.
+pub const PER_LIGHT_HELD_OUT_SHARE: f64 = 0.8;
 
 impl Default for PerLightCvOptions {
     fn default() -> Self {
@@ -356,6 +368,7 @@ impl Default for PerLightCvOptions {
             surrogate_spp: 1,
             min_image_gain: Some(DEFAULT_MIN_IMAGE_GAIN),
             min_fit_gain: Some(DEFAULT_MIN_FIT_GAIN),
+            min_held_out_share: Some(PER_LIGHT_HELD_OUT_SHARE),
         }
     }
 }
@@ -556,6 +569,14 @@ impl PhasedEstimator {
                 "must be finite (or null for the sampler's default)",
             ));
         }
+        if let Self::PerLightCv(o) = self
+            && o.min_held_out_share.is_some_and(|g| !g.is_finite())
+        {
+            return Err((
+                "min_held_out_share",
+                "must be finite (or null to always apply the means)",
+            ));
+        }
         if let Some((image, fit)) = gains {
             for (name, gain) in [("min_image_gain", image), ("min_fit_gain", fit)] {
                 if gain.is_some_and(|g| !g.is_finite()) {
@@ -634,6 +655,10 @@ impl PhasedEstimator {
             Self::PerLightCv(o) => crate::solve::SolvePolicy {
                 min_image_gain: o.min_image_gain.unwrap_or(f64::NEG_INFINITY),
                 min_fit_gain: o.min_fit_gain.unwrap_or(f64::NEG_INFINITY),
+                min_held_out_share: o.min_held_out_share.unwrap_or(f64::NEG_INFINITY),
+                held_out_share_alone: true,
+                // Training records each cell's halves apart (merged for the means).
+                halves: crate::solve::CellHalves::CrossFitted,
                 ..crate::solve::SolvePolicy::default()
             },
         }
@@ -849,7 +874,21 @@ mod tests {
                 ..CmsOptions::default()
             });
             assert_eq!(share.validate().unwrap_err().0, "min_held_out_share");
+            let per_light = PhasedEstimator::PerLightCv(PerLightCvOptions {
+                min_held_out_share: Some(g),
+                ..PerLightCvOptions::default()
+            });
+            assert_eq!(per_light.validate().unwrap_err().0, "min_held_out_share");
         }
+        // `per_light_cv` cross-fits its cell means and lets the share alone decide.
+        let p = PhasedEstimator::PerLightCv(PerLightCvOptions::default()).solve_policy();
+        assert_eq!(p.halves, crate::solve::CellHalves::CrossFitted);
+        assert!(p.held_out_share_alone && p.min_held_out_share == PER_LIGHT_HELD_OUT_SHARE);
+        let off = PhasedEstimator::PerLightCv(PerLightCvOptions {
+            min_held_out_share: None,
+            ..PerLightCvOptions::default()
+        });
+        assert_eq!(off.solve_policy().min_held_out_share, f64::NEG_INFINITY);
         for g in [f64::NAN, f64::INFINITY] {
             let image = PhasedEstimator::Cms(CmsOptions {
                 min_image_gain: Some(g),

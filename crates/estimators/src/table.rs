@@ -237,12 +237,21 @@ pub fn solve_table(
 }
 
 /// A cell's two halves ([`CellHalves`]): the even and the odd training samples' sums.
-type Halves<'a> = (Option<&'a CellAccumulator>, Option<&'a CellAccumulator>);
+type Halves<'a, A = CellAccumulator> = (Option<&'a A>, Option<&'a A>);
 
-/// The cells of a table keyed by halves (`2c`, `2c + 1`): cell `c`'s merged accumulator (the
-/// even half, then the odd one merged into it) and its halves.
+/// Pairs the halves of a table recorded with halves (key `2 · cell + half`): each cell's
+/// merged accumulator and its two halves.
 fn pair_halves(t: &BTreeMap<u64, CellAccumulator>) -> BTreeMap<u64, (CellAccumulator, Halves<'_>)> {
-    let mut out: BTreeMap<u64, (CellAccumulator, Halves<'_>)> = BTreeMap::new();
+    pair_halves_by(t, |a, b| a.merge(b).is_ok())
+}
+
+/// [`pair_halves`] for any accumulator that `merge`s (`false`: the layouts differ, and the
+/// odd half is dropped from the cell, never merged wrongly).
+fn pair_halves_by<A: Clone>(
+    t: &BTreeMap<u64, A>,
+    merge: impl Fn(&mut A, &A) -> bool,
+) -> BTreeMap<u64, (A, Halves<'_, A>)> {
+    let mut out: BTreeMap<u64, (A, Halves<'_, A>)> = BTreeMap::new();
     for (&key, acc) in t {
         let (cell, odd) = (key / 2, key % 2 == 1);
         match out.get_mut(&cell) {
@@ -250,7 +259,7 @@ fn pair_halves(t: &BTreeMap<u64, CellAccumulator>) -> BTreeMap<u64, (CellAccumul
             Some((merged, halves)) => {
                 // Both halves are of one job: their layouts agree (else the odd half is
                 // dropped from the fit, never merged wrongly).
-                if merged.merge(acc).is_ok() {
+                if merge(merged, acc) {
                     halves.1 = Some(acc);
                 }
             }
@@ -675,10 +684,12 @@ impl FitSums {
 
     /// The sums of a `per_light_cv` table: each cell's
     /// [`MeanContributionAccumulator::prediction`] (its reduction where the cell kept its
-    /// coefficients); `None` when a cell has no prediction (a version-1 record).
+    /// coefficients) and, per cell judged on its halves, its held-out reduction; `None` when
+    /// a cell has no prediction (a version-1 record).
     fn of_means(
         cells: &BTreeMap<u64, MeanContributionAccumulator>,
         coefficients: &BTreeMap<u64, CellCoefficients>,
+        held_out: &BTreeMap<u64, f64>,
     ) -> Option<Self> {
         let mut sums = Self::default();
         for (k, a) in cells {
@@ -686,6 +697,10 @@ impl FitSums {
             sums.variance += p.variance;
             if coefficients.get(k).is_some_and(|co| !co.is_fallback()) {
                 sums.reduction += p.reduction;
+                if let Some(h) = held_out.get(k) {
+                    sums.held_out += h;
+                    sums.held_out_in_sample += p.reduction;
+                }
             }
         }
         Some(sums)
@@ -904,6 +919,38 @@ impl AccumulatorTable {
                 let sums = FitSums::of(t, &out.coefficients, &BTreeMap::new());
                 (out, Some(sums), *image)
             }
+            Self::Mean(t, image) if policy.halves != CellHalves::None => {
+                // Recorded with halves: the cells' means are fitted on both halves; with
+                // `CrossFitted` each kept cell's halves are also judged on each other.
+                let cells = pair_halves_by(t, |a, b| a.merge(b).is_ok());
+                let merged: BTreeMap<u64, MeanContributionAccumulator> =
+                    cells.iter().map(|(&k, (a, _))| (k, a.clone())).collect();
+                let mut out = par(&merged, threads, |a| {
+                    (
+                        crate::perlight::mean_contribution_coefficients(a, policy.min_samples),
+                        a.rejected(),
+                    )
+                });
+                let mut held_out = BTreeMap::new();
+                if policy.halves == CellHalves::CrossFitted {
+                    for (k, (_, (even, odd))) in &cells {
+                        let kept = out.coefficients.get(k).is_some_and(|c| !c.is_fallback());
+                        if let (true, Some(even), Some(odd)) = (kept, even, odd)
+                            && let (Some(a), Some(b)) =
+                                (odd.held_out_reduction(even), even.held_out_reduction(odd))
+                        {
+                            held_out.insert(*k, a + b);
+                        }
+                    }
+                }
+                let sums = FitSums::of_means(&merged, &out.coefficients, &held_out);
+                if policy.halves == CellHalves::CrossFitted
+                    && let Some(s) = &sums
+                {
+                    (out.held_out_gain, out.held_out_share) = s.held_out_gains();
+                }
+                (out, sums, *image)
+            }
             Self::Mean(t, image) => {
                 let out = par(t, threads, |a| {
                     (
@@ -911,7 +958,7 @@ impl AccumulatorTable {
                         a.rejected(),
                     )
                 });
-                let sums = FitSums::of_means(t, &out.coefficients);
+                let sums = FitSums::of_means(t, &out.coefficients, &BTreeMap::new());
                 (out, sums, *image)
             }
         };
@@ -926,8 +973,8 @@ impl AccumulatorTable {
             Some(FallbackReason::LowImageGain)
         } else if below(out.fit_gain, policy.min_fit_gain) {
             Some(FallbackReason::LowFitGain)
-        } else if below(out.held_out_gain, policy.min_fit_gain)
-            && below(out.held_out_share, policy.min_held_out_share)
+        } else if below(out.held_out_share, policy.min_held_out_share)
+            && (policy.held_out_share_alone || below(out.held_out_gain, policy.min_fit_gain))
         {
             Some(FallbackReason::Overfitted)
         } else {

@@ -187,7 +187,7 @@ fn cms_is_unbiased_on_envmap() {
     assert!(check("scenes/envmap/scene.json", cms_coarse(), 16, 16, 1024) > 0);
 }
 
-/// With the surrogate weights and the per-cell rule, the table switch off so that the
+/// With the surrogate weights and the per-cell rule, the table switches off so that the
 /// cells that keep their means are applied whatever the predicted gain (checked: some do).
 #[test]
 fn per_light_cv_is_unbiased_on_many_lights() {
@@ -196,6 +196,7 @@ fn per_light_cv_is_unbiased_on_many_lights() {
         grid_resolution: Some([4, 4, 4]),
         min_image_gain: None,
         min_fit_gain: None,
+        min_held_out_share: None,
         ..PerLightCvOptions::default()
     });
     let solved = check("scenes/many-lights/scene.json", e, 16, 16, 1024);
