@@ -322,8 +322,8 @@ pub struct BarrierStats {
     #[serde(default)]
     pub predicted_held_out_gain: Option<f64>,
     /// Held-out share of the fits' gain (`estimators::table::SolvedTable::held_out_share`;
-    /// below the job's `min_held_out_share`, with a held-out gain below `min_fit_gain`, every
-    /// cell falls back), when known.
+    /// below the job's `min_held_out_share`, with a held-out gain below `min_fit_gain` — for
+    /// `per_light_cv` whatever the gain — every cell falls back), when known.
     #[serde(default)]
     pub predicted_held_out_share: Option<f64>,
 }

@@ -196,12 +196,12 @@ pub struct EstimatorReport {
     pub predicted_fit_gain: Option<f64>,
     /// The fit gain held out: each cell's two halves fitted apart, each fit judged on the
     /// other half ([`estimators::table::SolvedTable::held_out_gain`]); `null` when not
-    /// computed (`cms` only).
+    /// computed (`cms` and `per_light_cv` only).
     pub predicted_held_out_gain: Option<f64>,
     /// The share of the fits' in-sample gain that the held-out check keeps
     /// ([`estimators::table::SolvedTable::held_out_share`]); `null` when not computed. Below
-    /// the job's `min_held_out_share`, with a held-out gain below `min_fit_gain`, every cell
-    /// falls back (`Overfitted`).
+    /// the job's `min_held_out_share`, with a held-out gain below `min_fit_gain` (for
+    /// `per_light_cv` whatever the gain), every cell falls back (`Overfitted`).
     pub predicted_held_out_share: Option<f64>,
     /// Emitters of the scene.
     pub lights: u32,

@@ -979,6 +979,27 @@ mod tests {
         (m, vec![stratum])
     }
 
+    /// Over simulated pilots: the mean and standard deviation of `ln ratio` (the stratified
+    /// totals') and the mean jackknife σ.
+    fn spread_and_jackknife(pilots: &[(Vec<PilotPixel>, Vec<Stratum>)]) -> (f64, f64, f64) {
+        let logs: Vec<f64> = pilots
+            .iter()
+            .map(|(_, strata)| {
+                let t = stratified_totals(strata);
+                (t[0] / t[1]).ln()
+            })
+            .collect();
+        let n = logs.len() as f64;
+        let mean = logs.iter().sum::<f64>() / n;
+        let sd = (logs.iter().map(|l| (l - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
+        let se = pilots
+            .iter()
+            .map(|(m, strata)| jackknife_log_ratio_se(m, strata))
+            .sum::<f64>()
+            / n;
+        (mean, sd, se)
+    }
+
     /// The jackknife's ends: pixels that all have one ratio leave no doubt; a pilot whose
     /// error is all in one pixel (or that has one pixel) leaves no confidence.
     #[test]
@@ -1018,7 +1039,7 @@ mod tests {
             let (u, v) = (uniform(), uniform());
             (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
         };
-        let (mut logs, mut ses) = (Vec::new(), Vec::new());
+        let mut pilots = Vec::new();
         for _ in 0..400 {
             let ab: Vec<(f64, f64)> = (0..64)
                 .map(|i| {
@@ -1028,14 +1049,10 @@ mod tests {
                 })
                 .collect();
             let (m, t) = pixels(&ab);
-            let total = stratified_totals(&t);
-            logs.push((total[0] / total[1]).ln());
-            ses.push(jackknife_log_ratio_se(&m, &t));
+            pilots.push((m, t));
         }
-        let n = logs.len() as f64;
-        let mean = logs.iter().sum::<f64>() / n;
-        let sd = (logs.iter().map(|l| (l - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
-        let se = ses.iter().sum::<f64>() / n;
+        let (mean, sd, se) = spread_and_jackknife(&pilots);
+        let n = pilots.len() as f64;
         assert!((se / sd - 1.0).abs() < 0.2, "jackknife {se} vs spread {sd}");
         // `ln` of the ratio is symmetric about the truth (both sums have one shape): its mean
         // is ln 2 within four standard errors.
@@ -1053,7 +1070,7 @@ mod tests {
             state = mix64(state.wrapping_add(0x9e37_79b9_7f4a_7c15));
             ((state >> 11) as f64 + 0.5) / (1u64 << 53) as f64
         };
-        let (mut logs, mut ses) = (Vec::new(), Vec::new());
+        let mut pilots = Vec::new();
         for _ in 0..400 {
             let mut m = Vec::new();
             let mut strata = [Stratum::new(10_000.0), Stratum::new(1_000.0)];
@@ -1083,14 +1100,9 @@ mod tests {
                     emission: [[0.0; 3]; 2],
                 });
             }
-            let t = stratified_totals(&strata);
-            logs.push((t[0] / t[1]).ln());
-            ses.push(jackknife_log_ratio_se(&m, &strata));
+            pilots.push((m, strata.to_vec()));
         }
-        let n = logs.len() as f64;
-        let mean = logs.iter().sum::<f64>() / n;
-        let sd = (logs.iter().map(|l| (l - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
-        let se = ses.iter().sum::<f64>() / n;
+        let (_, sd, se) = spread_and_jackknife(&pilots);
         assert!(
             (se / sd - 1.0).abs() < 0.25,
             "jackknife {se} vs spread {sd}"
