@@ -628,3 +628,37 @@ fn the_ocv_pilot_counts_the_lamps_the_camera_sees() {
         assert!(!c.use_ocv, "seed {seed}: {c:?}");
     }
 }
+
+/// A pilot stops once half its lattice leaves no hope: in the Cornell box (the gather
+/// 0.24× at equal time) it chooses `path` on fewer rays than the whole lattice, which a
+/// `min_speedup` of 0 (never hopeless) measures; with the whole lattice it still says `path`
+/// at the default.
+#[test]
+fn a_hopeless_pilot_stops_at_half_its_lattice() {
+    let scene = load("cornell-box", 128, 128);
+    let choose = |min_speedup: f64| {
+        let o = OcvOptions {
+            min_speedup: Some(min_speedup),
+            ..OcvOptions::default()
+        };
+        let st = RenderSettings {
+            spp: 32,
+            max_depth: 5,
+            estimator: Estimator::Ocv(o),
+            ..RenderSettings::from_scene(&scene)
+        };
+        let rs = RenderScene::new(&scene, &st).expect("prepare");
+        ocv::choose(&rs, &st, &o)
+    };
+    let stopped = choose(OcvOptions::default().min_speedup.unwrap());
+    let whole = choose(0.0);
+    assert!(!stopped.use_ocv && whole.use_ocv, "{stopped:?} / {whole:?}");
+    assert!(
+        (stopped.rays as f64) < 0.8 * whole.rays as f64,
+        "{stopped:?} / {whole:?}"
+    );
+    assert!(
+        whole.speedup_low < OcvOptions::default().min_speedup.unwrap(),
+        "{whole:?}"
+    );
+}

@@ -72,7 +72,11 @@
 //! and spp included), the same for any tile size, sample range, thread or worker; it is
 //! independent of the image's own samples, which stay unbiased given it. Its cost: about
 //! `(1 + 1.2 r) / PILOT_STEP²` of the job, `r` the gather's cost over `path`'s (≈ 1 % at
-//! `r` = 4; 1.5–2.1 % measured on 128×128 images, where the pilot takes 64 pixels).
+//! `r` = 4; 1.5–2.1 % measured on 128×128 images, where the pilot takes 64 pixels), plus
+//! the emission pass (0.5–1 %). The lattice is measured in chunks of [`PILOT_CHUNK`] pixels
+//! in a fixed pseudo-random order; from half of it on, a prediction whose upper
+//! two-standard-error bound is below `min_speedup` stops the pilot (`path`): where the gather
+//! clearly cannot pay (a room of 256 lamps at depth 5, the Cornell box) that halves its cost.
 //! [`RenderScene::ocv_choice`] makes it once per prepared scene and settings: a local render
 //! runs it once on all threads before its tiles, a farm worker once per job
 //! (its first task). A time-budget render (`cvfarm render --time-budget`) sizes it by the
@@ -811,80 +815,29 @@ pub fn choose(rs: &RenderScene, st: &RenderSettings, opts: &OcvOptions) -> Choic
     // error of a half-budget image, with the sampler's stratification in it at (about) the
     // job's own sample count.
     let half = (st.spp / 2).max(1);
-    let (pixels, mut strata) = pilot_pixels(rs);
-    let mut measured: Vec<PilotPixel> = pixels
-        .par_iter()
-        .map_init(
-            || Scratch::new(rs, opts),
-            |scratch, &(x, y, stratum, sees_emitter)| {
-                // The emission pass: its errors are weighed once the lattice is measured.
-                if stratum == EMISSION {
-                    return PilotPixel {
-                        var: [0.0; 2],
-                        rays: [0; 2],
-                        traced: 2 * u64::from(half),
-                        stratum,
-                        emission: pilots.map(|pst| camera_emission(rs, &pst, x, y, half)),
-                    };
-                }
-                let mut means = [[[0.0f64; 3]; 2]; 2]; // [estimator][randomisation][channel]
-                let mut rays = [0u64; 2];
-                for (r, pst) in pilots.iter().enumerate() {
-                    for s in 0..half {
-                        let p = path::sample_pixel(rs, pst, x, y, s);
-                        let o = sample_pixel(rs, pst, opts, scratch, x, y, s);
-                        for (e, smp) in [p, o].into_iter().enumerate() {
-                            rays[e] += u64::from(smp.rays);
-                            // A non-finite sample counts as the film counts it: zero.
-                            let v = if smp.radiance.is_finite() {
-                                smp.radiance
-                            } else {
-                                Vec3::ZERO
-                            };
-                            for (m, vc) in means[e][r].iter_mut().zip(v.to_array()) {
-                                *m += f64::from(vc) / f64::from(half);
-                            }
-                        }
-                    }
-                }
-                // Relative to the pixel's mean over both estimators and randomisations.
-                let weight = [0, 1, 2].map(|c| {
-                    let m =
-                        (means[0][0][c] + means[0][1][c] + means[1][0][c] + means[1][1][c]) / 4.0;
-                    1.0 / (m * m + estimators::metrics::REL_MSE_EPSILON)
-                });
-                let mut var = means.map(|[a, b]| {
-                    (0..3)
-                        .map(|c| 0.5 * (a[c] - b[c]).powi(2) * weight[c])
-                        .sum::<f64>()
-                });
-                let mut emission = [[0.0; 3]; 2];
-                if sees_emitter {
-                    // Less the part both estimators share, the error of their camera-hit
-                    // emission from these very samples: the emission pass measures it
-                    // over many more pixels.
-                    emission = pilots.map(|pst| camera_emission(rs, &pst, x, y, half));
-                    let [a, b] = emission;
-                    let shared: f64 = (0..3)
-                        .map(|c| 0.5 * (a[c] - b[c]).powi(2) * weight[c])
-                        .sum();
-                    var = var.map(|v| v - shared);
-                }
-                PilotPixel {
-                    var,
-                    rays,
-                    traced: rays[0] + rays[1] + 4 * u64::from(half) * u64::from(sees_emitter),
-                    stratum,
-                    emission,
-                }
-            },
-        )
-        .collect();
+    let (pixels, strata) = pilot_pixels(rs);
+    // The emission pass first, then the lattice in a fixed pseudo-random order, a chunk at a
+    // time: once half of it is measured, a prediction whose upper two-standard-error bound
+    // is still below `min_speedup` stops the pilot (`path`). The chunks and their order
+    // depend on the job alone, so the choice does on any thread count.
+    let (mut lattice, pass): (Vec<PilotSite>, Vec<PilotSite>) =
+        pixels.into_iter().partition(|p| p.2 == LATTICE);
+    lattice.sort_by_key(|&(x, y, ..)| mix64(u64::from(y * rs.width + x) ^ PILOT_SEED));
+    let measure = |sites: &[PilotSite]| -> Vec<PilotPixel> {
+        sites
+            .par_iter()
+            .map_init(
+                || Scratch::new(rs, opts),
+                |scratch, site| measure_pixel(rs, &pilots, opts, scratch, half, site),
+            )
+            .collect()
+    };
+    let mut measured = measure(&pass);
     // A pass pixel's emission error is relative to its emission's mean: a lower bound of the
     // pixel's mean (the rest of its light is not traced), so the shared error is if anything
     // overstated, which favours `path`. (The lattice's mean of the rest in its place chose
     // the gather at 2 of 10 seeds on a 256-lamp room at 256 spp, where it got 0.65×.)
-    for m in measured.iter_mut().filter(|m| m.stratum == EMISSION) {
+    for m in &mut measured {
         let [a, b] = m.emission;
         let shared: f64 = (0..3)
             .map(|c| {
@@ -894,8 +847,37 @@ pub fn choose(rs: &RenderScene, st: &RenderSettings, opts: &OcvOptions) -> Choic
             .sum();
         m.var = [shared; 2];
     }
+    let mut done = 0;
+    loop {
+        let chunk = &lattice[done..(done + PILOT_CHUNK).min(lattice.len())];
+        measured.extend(measure(chunk));
+        done += chunk.len();
+        let c = prediction(&measured, &strata, min_speedup);
+        let hopeless = c.speedup * (2.0 * c.log_se).exp() < min_speedup;
+        if done >= lattice.len() || (2 * done >= lattice.len() && hopeless) {
+            return c.choice;
+        }
+    }
+}
+
+/// How many lattice pixels the pilot measures between its checks ([`choose`]).
+pub const PILOT_CHUNK: usize = 16;
+
+/// A pilot's prediction from the pixels measured so far ([`choose`]).
+struct Prediction {
+    choice: Choice,
+    /// `choice.speedup`.
+    speedup: f64,
+    /// The jackknife standard error of its log.
+    log_se: f64,
+}
+
+/// The prediction and choice from `measured` (each stratum of `strata` scaled by its pixels
+/// over its measured pixels).
+fn prediction(measured: &[PilotPixel], strata: &[Stratum], min_speedup: f64) -> Prediction {
+    let mut strata = strata.to_vec();
     let mut traced = 0u64;
-    for m in &measured {
+    for m in measured {
         let s = &mut strata[m.stratum];
         s.count += 1;
         for e in 0..2 {
@@ -908,13 +890,91 @@ pub fn choose(rs: &RenderScene, st: &RenderSettings, opts: &OcvOptions) -> Choic
     let rays = [0, 1].map(|e| strata.iter().map(|s| s.weight() * s.rays[e]).sum::<f64>());
     let cost = rays[0] / (rays[1] * OCV_RAY_COST);
     let speedup = var[0] / var[1] * cost;
-    let speedup_low = less_one_se(speedup, jackknife_log_ratio_se(&measured, &strata));
-    Choice {
+    let log_se = jackknife_log_ratio_se(measured, &strata);
+    let speedup_low = less_one_se(speedup, log_se);
+    Prediction {
+        choice: Choice {
+            speedup,
+            speedup_low,
+            // NaN (nothing varied): the cheaper `path`.
+            use_ocv: speedup_low >= min_speedup,
+            rays: traced,
+        },
         speedup,
-        speedup_low,
-        // NaN (nothing varied): the cheaper `path`.
-        use_ocv: speedup_low >= min_speedup,
-        rays: traced,
+        log_se,
+    }
+}
+
+/// Measures one pilot pixel ([`PilotSite`]) with the two randomisations `pilots` of `half`
+/// samples each: both estimators' relative squared differences (less the camera-hit
+/// emission's where the pixel may see an emitter), or for the emission pass that emission's
+/// means alone (weighed in [`choose`]).
+fn measure_pixel(
+    rs: &RenderScene,
+    pilots: &[RenderSettings; 2],
+    opts: &OcvOptions,
+    scratch: &mut Scratch,
+    half: u32,
+    &(x, y, stratum, sees_emitter): &PilotSite,
+) -> PilotPixel {
+    // The emission pass: its errors are weighed once the lattice is measured.
+    if stratum == EMISSION {
+        return PilotPixel {
+            var: [0.0; 2],
+            rays: [0; 2],
+            traced: 2 * u64::from(half),
+            stratum,
+            emission: pilots.map(|pst| camera_emission(rs, &pst, x, y, half)),
+        };
+    }
+    let mut means = [[[0.0f64; 3]; 2]; 2]; // [estimator][randomisation][channel]
+    let mut rays = [0u64; 2];
+    for (r, pst) in pilots.iter().enumerate() {
+        for s in 0..half {
+            let p = path::sample_pixel(rs, pst, x, y, s);
+            let o = sample_pixel(rs, pst, opts, scratch, x, y, s);
+            for (e, smp) in [p, o].into_iter().enumerate() {
+                rays[e] += u64::from(smp.rays);
+                // A non-finite sample counts as the film counts it: zero.
+                let v = if smp.radiance.is_finite() {
+                    smp.radiance
+                } else {
+                    Vec3::ZERO
+                };
+                for (m, vc) in means[e][r].iter_mut().zip(v.to_array()) {
+                    *m += f64::from(vc) / f64::from(half);
+                }
+            }
+        }
+    }
+    // Relative to the pixel's mean over both estimators and randomisations.
+    let weight = [0, 1, 2].map(|c| {
+        let m = (means[0][0][c] + means[0][1][c] + means[1][0][c] + means[1][1][c]) / 4.0;
+        1.0 / (m * m + estimators::metrics::REL_MSE_EPSILON)
+    });
+    let mut var = means.map(|[a, b]| {
+        (0..3)
+            .map(|c| 0.5 * (a[c] - b[c]).powi(2) * weight[c])
+            .sum::<f64>()
+    });
+    let mut emission = [[0.0; 3]; 2];
+    if sees_emitter {
+        // Less the part both estimators share, the error of their camera-hit
+        // emission from these very samples: the emission pass measures it
+        // over many more pixels.
+        emission = pilots.map(|pst| camera_emission(rs, &pst, x, y, half));
+        let [a, b] = emission;
+        let shared: f64 = (0..3)
+            .map(|c| 0.5 * (a[c] - b[c]).powi(2) * weight[c])
+            .sum();
+        var = var.map(|v| v - shared);
+    }
+    PilotPixel {
+        var,
+        rays,
+        traced: rays[0] + rays[1] + 4 * u64::from(half) * u64::from(sees_emitter),
+        stratum,
+        emission,
     }
 }
 
