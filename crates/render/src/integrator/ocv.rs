@@ -861,7 +861,7 @@ pub fn choose(rs: &RenderScene, st: &RenderSettings, opts: &OcvOptions) -> Choic
 }
 
 /// How many lattice pixels the pilot measures between its checks ([`choose`]).
-pub const PILOT_CHUNK: usize = 16;
+pub const PILOT_CHUNK: usize = 32;
 
 /// A pilot's prediction from the pixels measured so far ([`choose`]).
 struct Prediction {
