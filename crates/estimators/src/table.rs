@@ -869,9 +869,11 @@ impl AccumulatorTable {
     /// is below [`SolvePolicy::min_image_gain`] every fitted cell falls back
     /// ([`FallbackReason::LowImageGain`]), else when the second is below
     /// [`SolvePolicy::min_fit_gain`] ([`FallbackReason::LowFitGain`]), else, for a
-    /// cross-fitted table, when its held-out gain is below `min_fit_gain` and its held-out
-    /// share below [`SolvePolicy::min_held_out_share`] ([`FallbackReason::Overfitted`];
-    /// [`SolvedTable::held_out_share`]): the render then pays no CV work anywhere. An
+    /// cross-fitted table, when its held-out share is below
+    /// [`SolvePolicy::min_held_out_share`] and its held-out gain below `min_fit_gain` (or the
+    /// share decides alone, [`SolvePolicy::held_out_share_alone`])
+    /// ([`FallbackReason::Overfitted`]; [`SolvedTable::held_out_share`]): the render then pays
+    /// no CV work anywhere. An
     /// unknown gain makes no decision.
     pub fn solve(&self, policy: &SolvePolicy, threads: usize) -> SolvedTable {
         fn par<T: Sync>(
@@ -919,46 +921,40 @@ impl AccumulatorTable {
                 let sums = FitSums::of(t, &out.coefficients, &BTreeMap::new());
                 (out, Some(sums), *image)
             }
-            Self::Mean(t, image) if policy.halves != CellHalves::None => {
+            Self::Mean(t, image) => {
                 // Recorded with halves: the cells' means are fitted on both halves; with
                 // `CrossFitted` each kept cell's halves are also judged on each other.
-                let cells = pair_halves_by(t, |a, b| a.merge(b).is_ok());
-                let merged: BTreeMap<u64, MeanContributionAccumulator> =
-                    cells.iter().map(|(&k, (a, _))| (k, a.clone())).collect();
+                let (merged, halves): (Cow<'_, BTreeMap<u64, _>>, BTreeMap<u64, Halves<'_, _>>) =
+                    if policy.halves == CellHalves::None {
+                        (Cow::Borrowed(t), BTreeMap::new())
+                    } else {
+                        let (m, h) = pair_halves_by(t, |a, b| a.merge(b).is_ok())
+                            .into_iter()
+                            .map(|(k, (a, halves))| ((k, a), (k, halves)))
+                            .unzip();
+                        (Cow::Owned(m), h)
+                    };
                 let mut out = par(&merged, threads, |a| {
                     (
                         crate::perlight::mean_contribution_coefficients(a, policy.min_samples),
                         a.rejected(),
                     )
                 });
+                let cross_fitted = policy.halves == CellHalves::CrossFitted;
                 let mut held_out = BTreeMap::new();
-                if policy.halves == CellHalves::CrossFitted {
-                    for (k, (_, (even, odd))) in &cells {
-                        let kept = out.coefficients.get(k).is_some_and(|c| !c.is_fallback());
-                        if let (true, Some(even), Some(odd)) = (kept, even, odd)
-                            && let (Some(a), Some(b)) =
-                                (odd.held_out_reduction(even), even.held_out_reduction(odd))
-                        {
-                            held_out.insert(*k, a + b);
-                        }
+                for (k, (even, odd)) in halves.iter().filter(|_| cross_fitted) {
+                    let kept = out.coefficients.get(k).is_some_and(|c| !c.is_fallback());
+                    if let (true, Some(even), Some(odd)) = (kept, even, odd)
+                        && let (Some(a), Some(b)) =
+                            (odd.held_out_reduction(even), even.held_out_reduction(odd))
+                    {
+                        held_out.insert(*k, a + b);
                     }
                 }
                 let sums = FitSums::of_means(&merged, &out.coefficients, &held_out);
-                if policy.halves == CellHalves::CrossFitted
-                    && let Some(s) = &sums
-                {
+                if cross_fitted && let Some(s) = &sums {
                     (out.held_out_gain, out.held_out_share) = s.held_out_gains();
                 }
-                (out, sums, *image)
-            }
-            Self::Mean(t, image) => {
-                let out = par(t, threads, |a| {
-                    (
-                        crate::perlight::mean_contribution_coefficients(a, policy.min_samples),
-                        a.rejected(),
-                    )
-                });
-                let sums = FitSums::of_means(t, &out.coefficients, &BTreeMap::new());
                 (out, sums, *image)
             }
         };

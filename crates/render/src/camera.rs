@@ -100,7 +100,7 @@ impl Camera {
     /// off the image.
     pub fn film_position(&self, p: Vec3) -> Option<Vec2> {
         let q = self.to_camera.transform_point3(p);
-        if q.z.is_nan() || q.z <= 0.0 || !q.is_finite() {
+        if !q.is_finite() || q.z <= 0.0 {
             return None;
         }
         // `ray`: d_cam ∝ ((1 − 2 sx) · tan_half_x, (1 − 2 sy) · tan_half_y, 1).

@@ -692,6 +692,21 @@ fn camera_emission(rs: &RenderScene, st: &RenderSettings, x: u32, y: u32, n: u32
     mean
 }
 
+/// The relative weights `1/(m² + ε)` of a pixel whose channels' means are `mean` (ε as the
+/// benches' relMSE).
+fn relative_weights(mean: [f64; 3]) -> [f64; 3] {
+    mean.map(|m| 1.0 / (m * m + estimators::metrics::REL_MSE_EPSILON))
+}
+
+/// A pixel's relative error from its two randomisations' means `a` and `b`: half their
+/// squared difference per channel times the channel's `weight` ([`relative_weights`]),
+/// summed over the channels.
+fn relative_error(a: [f64; 3], b: [f64; 3], weight: [f64; 3]) -> f64 {
+    (0..3)
+        .map(|c| 0.5 * (a[c] - b[c]).powi(2) * weight[c])
+        .sum()
+}
+
 /// Mixed into the job's seed for the pilot's two randomisations.
 const PILOT_SEED: u64 = 0x7069_6c6f_7400_0001;
 
@@ -739,8 +754,6 @@ struct PilotPixel {
     /// Rays the pilot traced for the pixel.
     traced: u64,
     stratum: usize,
-    /// The camera-hit emission's mean per randomisation (zero where none is seen).
-    emission: [[f64; 3]; 2],
 }
 
 /// The strata's scaled sums: the image's estimated error of each estimator.
@@ -833,27 +846,13 @@ pub fn choose(rs: &RenderScene, st: &RenderSettings, opts: &OcvOptions) -> Choic
             .collect()
     };
     let mut measured = measure(&pass);
-    // A pass pixel's emission error is relative to its emission's mean: a lower bound of the
-    // pixel's mean (the rest of its light is not traced), so the shared error is if anything
-    // overstated, which favours `path`. (The lattice's mean of the rest in its place chose
-    // the gather at 2 of 10 seeds on a 256-lamp room at 256 spp, where it got 0.65×.)
-    for m in &mut measured {
-        let [a, b] = m.emission;
-        let shared: f64 = (0..3)
-            .map(|c| {
-                let mean = 0.5 * (a[c] + b[c]);
-                0.5 * (a[c] - b[c]).powi(2) / (mean * mean + estimators::metrics::REL_MSE_EPSILON)
-            })
-            .sum();
-        m.var = [shared; 2];
-    }
     let mut done = 0;
     loop {
         let chunk = &lattice[done..(done + PILOT_CHUNK).min(lattice.len())];
         measured.extend(measure(chunk));
         done += chunk.len();
         let c = prediction(&measured, &strata, min_speedup);
-        let hopeless = c.speedup * (2.0 * c.log_se).exp() < min_speedup;
+        let hopeless = c.choice.speedup * (2.0 * c.log_se).exp() < min_speedup;
         if done >= lattice.len() || (2 * done >= lattice.len() && hopeless) {
             return c.choice;
         }
@@ -866,9 +865,7 @@ pub const PILOT_CHUNK: usize = 32;
 /// A pilot's prediction from the pixels measured so far ([`choose`]).
 struct Prediction {
     choice: Choice,
-    /// `choice.speedup`.
-    speedup: f64,
-    /// The jackknife standard error of its log.
+    /// The jackknife standard error of the log of `choice.speedup`.
     log_se: f64,
 }
 
@@ -900,7 +897,6 @@ fn prediction(measured: &[PilotPixel], strata: &[Stratum], min_speedup: f64) -> 
             use_ocv: speedup_low >= min_speedup,
             rays: traced,
         },
-        speedup,
         log_se,
     }
 }
@@ -908,7 +904,7 @@ fn prediction(measured: &[PilotPixel], strata: &[Stratum], min_speedup: f64) -> 
 /// Measures one pilot pixel ([`PilotSite`]) with the two randomisations `pilots` of `half`
 /// samples each: both estimators' relative squared differences (less the camera-hit
 /// emission's where the pixel may see an emitter), or for the emission pass that emission's
-/// means alone (weighed in [`choose`]).
+/// error alone.
 fn measure_pixel(
     rs: &RenderScene,
     pilots: &[RenderSettings; 2],
@@ -917,14 +913,22 @@ fn measure_pixel(
     half: u32,
     &(x, y, stratum, sees_emitter): &PilotSite,
 ) -> PilotPixel {
-    // The emission pass: its errors are weighed once the lattice is measured.
+    // The emission pass: relative to the emission's own mean, a lower bound of the pixel's
+    // (the rest of its light is not traced), so the shared error is if anything overstated,
+    // which favours `path`. (The lattice's mean of the rest in its place chose the gather at 2
+    // of 10 seeds on a 256-lamp room at 256 spp, where it got 0.65×.)
     if stratum == EMISSION {
+        let [a, b] = pilots.map(|pst| camera_emission(rs, &pst, x, y, half));
+        let shared = relative_error(
+            a,
+            b,
+            relative_weights([0, 1, 2].map(|c| 0.5 * (a[c] + b[c]))),
+        );
         return PilotPixel {
-            var: [0.0; 2],
+            var: [shared; 2],
             rays: [0; 2],
             traced: 2 * u64::from(half),
             stratum,
-            emission: pilots.map(|pst| camera_emission(rs, &pst, x, y, half)),
         };
     }
     let mut means = [[[0.0f64; 3]; 2]; 2]; // [estimator][randomisation][channel]
@@ -948,33 +952,25 @@ fn measure_pixel(
         }
     }
     // Relative to the pixel's mean over both estimators and randomisations.
-    let weight = [0, 1, 2].map(|c| {
-        let m = (means[0][0][c] + means[0][1][c] + means[1][0][c] + means[1][1][c]) / 4.0;
-        1.0 / (m * m + estimators::metrics::REL_MSE_EPSILON)
-    });
-    let mut var = means.map(|[a, b]| {
-        (0..3)
-            .map(|c| 0.5 * (a[c] - b[c]).powi(2) * weight[c])
-            .sum::<f64>()
-    });
-    let mut emission = [[0.0; 3]; 2];
+    let weight = relative_weights(
+        [0, 1, 2]
+            .map(|c| (means[0][0][c] + means[0][1][c] + means[1][0][c] + means[1][1][c]) / 4.0),
+    );
+    let mut var = means.map(|[a, b]| relative_error(a, b, weight));
+    let mut traced = rays[0] + rays[1];
     if sees_emitter {
-        // Less the part both estimators share, the error of their camera-hit
-        // emission from these very samples: the emission pass measures it
-        // over many more pixels.
-        emission = pilots.map(|pst| camera_emission(rs, &pst, x, y, half));
-        let [a, b] = emission;
-        let shared: f64 = (0..3)
-            .map(|c| 0.5 * (a[c] - b[c]).powi(2) * weight[c])
-            .sum();
+        // Less the part both estimators share, the error of their camera-hit emission from
+        // these very samples: the emission pass measures it over many more pixels.
+        let [a, b] = pilots.map(|pst| camera_emission(rs, &pst, x, y, half));
+        let shared = relative_error(a, b, weight);
         var = var.map(|v| v - shared);
+        traced += 2 * u64::from(half);
     }
     PilotPixel {
         var,
         rays,
-        traced: rays[0] + rays[1] + 4 * u64::from(half) * u64::from(sees_emitter),
+        traced,
         stratum,
-        emission,
     }
 }
 
@@ -1027,7 +1023,6 @@ mod tests {
                 rays: [1, 1],
                 traced: 2,
                 stratum: 0,
-                emission: [[0.0; 3]; 2],
             })
             .collect();
         let stratum = Stratum {
@@ -1157,7 +1152,6 @@ mod tests {
                     rays: [1, 1],
                     traced: 2,
                     stratum,
-                    emission: [[0.0; 3]; 2],
                 });
             }
             pilots.push((m, strata.to_vec()));
