@@ -14,6 +14,8 @@ Four single-thread renders: `path` and the estimator, each at its surrogate + tr
   per spp  = (est(S0+N) - est(S0) - path(S0+N) + path(S0)) / N    the render phase's CV work
 
 and give the overhead at any spp S >= S0: (fixed + (S - S0) per spp) / (S path(1 spp)).
+What the render phase costs once (its films, the EXR's CV layers) lands in `per spp`, divided
+by N: with a switched-off job that is the whole of its +0.3 %.
 
     cargo build --release -p cli
     python3 docs/bench/instructions.py scenes/colour-lamp/scene.json --max-depth 5 \
