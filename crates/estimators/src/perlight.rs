@@ -467,6 +467,19 @@ mod tests {
     /// A training vertex: weight, selected light and `1/c`, NEE value.
     type Vertex = (f64, Option<(u32, f64)>, [f64; 3]);
 
+    /// Training vertices of a cell with 4 lights: weight in `[0, 100)`, a selected light with
+    /// `1/c` in `[1, 8)` or none, NEE value per channel in `[0, 5)`.
+    fn vertices(len: std::ops::Range<usize>) -> impl Strategy<Value = Vec<Vertex>> {
+        proptest::collection::vec(
+            (
+                0.0f64..100.0,
+                proptest::option::of((0u32..4, 1.0f64..8.0)),
+                proptest::array::uniform3(0.0f64..5.0),
+            ),
+            len,
+        )
+    }
+
     /// `Δ` by its definition, vertex by vertex.
     fn direct_reduction(vertices: &[Vertex], lights: u32) -> f64 {
         direct_reduction_with(vertices, vertices, lights)
@@ -499,11 +512,7 @@ mod tests {
         /// merge and an encoding round trip.
         #[test]
         fn prediction_is_the_vertex_sum(
-            vs in proptest::collection::vec(
-                (0.0f64..100.0, proptest::option::of((0u32..4, 1.0f64..8.0)),
-                 proptest::array::uniform3(0.0f64..5.0)),
-                1..60,
-            ),
+            vs in vertices(1..60),
             split in 0usize..60,
         ) {
             let mut a = MeanContributionAccumulator::new(4);
@@ -528,11 +537,7 @@ mod tests {
         /// ways; a version-1 record on either side gives none.
         #[test]
         fn held_out_reduction_is_the_vertex_sum_with_the_other_halfs_means(
-            vs in proptest::collection::vec(
-                (0.0f64..100.0, proptest::option::of((0u32..4, 1.0f64..8.0)),
-                 proptest::array::uniform3(0.0f64..5.0)),
-                2..60,
-            ),
+            vs in vertices(2..60),
             split in 1usize..59,
         ) {
             let split = split.min(vs.len() - 1);
