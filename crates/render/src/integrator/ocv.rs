@@ -1078,6 +1078,20 @@ mod tests {
         assert!(less_one_se(f64::NAN, 0.1).is_nan());
     }
 
+    /// A stream of uniform numbers in `(0, 1)` from `seed` (splitmix64, 53 bits).
+    fn uniforms(seed: u64) -> impl FnMut() -> f64 {
+        let mut state = seed;
+        move || {
+            state = mix64(state.wrapping_add(0x9e37_79b9_7f4a_7c15));
+            ((state >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+        }
+    }
+
+    /// A standard normal number from two uniform ones (Box–Muller).
+    fn box_muller(u: f64, v: f64) -> f64 {
+        (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+    }
+
     /// The jackknife's standard error matches the spread it stands for. Pixels whose squared
     /// differences are χ²₁-distributed (as the pilot's two randomisations give) with scales
     /// spread over two decades: over 400 pilots of 64 pixels the mean jackknife σ agrees with
@@ -1085,15 +1099,8 @@ mod tests {
     /// deviation from 400 draws is ≈ 3.5 %; the jackknife is itself a first-order method).
     #[test]
     fn the_jackknife_matches_the_spread_of_the_ratio() {
-        let mut state = 7u64;
-        let mut uniform = || {
-            state = mix64(state.wrapping_add(0x9e37_79b9_7f4a_7c15));
-            ((state >> 11) as f64 + 0.5) / (1u64 << 53) as f64
-        };
-        let mut normal = || {
-            let (u, v) = (uniform(), uniform());
-            (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
-        };
+        let mut uniform = uniforms(7);
+        let mut normal = || box_muller(uniform(), uniform());
         let mut pilots = Vec::new();
         for _ in 0..400 {
             let ab: Vec<(f64, f64)> = (0..64)
@@ -1120,23 +1127,19 @@ mod tests {
     /// σ agrees with the standard deviation of `ln ratio` within 25 %.
     #[test]
     fn the_stratified_jackknife_matches_the_spread_of_the_ratio() {
-        let mut state = 11u64;
-        let mut uniform = || {
-            state = mix64(state.wrapping_add(0x9e37_79b9_7f4a_7c15));
-            ((state >> 11) as f64 + 0.5) / (1u64 << 53) as f64
-        };
+        let mut uniform = uniforms(11);
         let mut pilots = Vec::new();
         for _ in 0..400 {
             let mut m = Vec::new();
             let mut strata = [Stratum::new(10_000.0), Stratum::new(1_000.0)];
             for i in 0..96 {
                 let (stratum, var) = if i < 64 {
-                    let z = |u: f64, v: f64| {
-                        let n = (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos();
+                    let mut chi2 = || {
+                        let n = box_muller(uniform(), uniform());
                         n * n
                     };
-                    let a = z(uniform(), uniform());
-                    let b = 0.2 * z(uniform(), uniform());
+                    let a = chi2();
+                    let b = 0.2 * chi2();
                     (0, [a, b])
                 } else {
                     let v = if uniform() < 0.125 { 50.0 } else { 1.0 } * uniform();
