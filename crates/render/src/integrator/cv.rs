@@ -2521,8 +2521,7 @@ fn run_tile(
                     continue;
                 }
                 let mut sampler = Sampler::of_kind(st.sampler, st.seed, pixel, s);
-                let u = sampler.first_2d();
-                let ray = rs.camera.ray(Vec2::new(x as f32 + u.x, y as f32 + u.y));
+                let ray = super::path::camera_ray(rs, &mut sampler, x, y);
                 let phase = match (kind, table) {
                     (PhaseKind::Train, _) => Phase::Train(&mut cells),
                     (PhaseKind::Apply, Some(t)) => Phase::Apply(t),

@@ -522,8 +522,7 @@ pub fn sample_pixel(
 ) -> PathSample {
     let pixel = y * rs.width + x;
     let mut sampler = Sampler::of_kind(st.sampler, st.seed, pixel, sample_index);
-    let u = sampler.next_2d();
-    let ray = rs.camera.ray(Vec2::new(x as f32 + u.x, y as f32 + u.y));
+    let ray = path::camera_ray(rs, &mut sampler, x, y);
     trace(
         rs,
         st,
@@ -679,8 +678,7 @@ fn camera_emission(rs: &RenderScene, st: &RenderSettings, x: u32, y: u32, n: u32
     let mut mean = [0.0f64; 3];
     for s in 0..n {
         let mut sampler = Sampler::of_kind(st.sampler, st.seed, y * rs.width + x, s);
-        let u = sampler.first_2d();
-        let ray = rs.camera.ray(Vec2::new(x as f32 + u.x, y as f32 + u.y));
+        let ray = path::camera_ray(rs, &mut sampler, x, y);
         let mut out = PathSample::default();
         let e =
             camera_hit(rs, st, ray, &mut out).map_or(out.radiance, |(_, _, e)| e + out.radiance);

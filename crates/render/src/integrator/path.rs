@@ -366,7 +366,15 @@ pub fn sample_pixel(
         y.wrapping_mul(rs.width).wrapping_add(x),
         sample_index,
     );
-    let u = sampler.first_2d();
-    let ray = rs.camera.ray(Vec2::new(x as f32 + u.x, y as f32 + u.y));
+    let ray = camera_ray(rs, &mut sampler, x, y);
     trace(rs, st, ray, &mut sampler, &mut super::NoObserver)
+}
+
+/// The camera ray of a sample of pixel `(x, y)` through a uniformly sampled point of the
+/// pixel: the first two dimensions of the sample's fresh `sampler`. Every estimator starts
+/// its pixel samples with it, so that they share their camera rays.
+#[inline(always)]
+pub fn camera_ray(rs: &RenderScene, sampler: &mut Sampler, x: u32, y: u32) -> Ray {
+    let u = sampler.first_2d();
+    rs.camera.ray(Vec2::new(x as f32 + u.x, y as f32 + u.y))
 }
