@@ -326,6 +326,41 @@ fn fits_predicted_not_to_pay_leave_the_image_to_path() {
     assert!(bits(&kept) == bits(&on));
 }
 
+/// The `cell` layer holds the camera-hit cell of each pixel's first render-phase sample that
+/// found one. Below `min_depth` (the default 1 with the Sobol sampler) that cell is looked up
+/// for the layer alone, and only until a sample of the pixel finds it. With `min_depth` 0 the
+/// control looks it up at every sample, and the layer is the same bit for bit, since the
+/// render phase's samples and camera rays are the same. In the closed Cornell box every camera
+/// ray hits, so every pixel has a cell.
+#[test]
+fn the_cell_layer_is_the_first_samples_cell_whatever_the_min_depth() {
+    let opts = RenderOptions::default();
+    let s = load("scenes/cornell-box/scene.json", 24, 16);
+    let run = |min_depth| {
+        let e = Estimator::Cms(CmsOptions {
+            training_spp: 8,
+            min_samples: 4,
+            min_depth,
+            min_image_gain: None,
+            min_fit_gain: None,
+            min_held_out_share: Some(0.0),
+            ..CmsOptions::default()
+        });
+        let (_, r) = render(&s, e, 24, 5, None, opts);
+        assert!(r.cells_solved > 0, "{r:?}");
+        let layer = r.layers.iter().find(|l| l.name == "cell").unwrap();
+        layer.data.iter().map(|c| c[0]).collect::<Vec<f32>>()
+    };
+    let (skipped, controlled) = (run(None), run(Some(0)));
+    assert_eq!(skipped.len(), 24 * 16);
+    assert!(
+        skipped.iter().all(|&c| c >= 0.0 && c.fract() == 0.0),
+        "{skipped:?}"
+    );
+    let bits = |v: &[f32]| v.iter().map(|c| c.to_bits()).collect::<Vec<_>>();
+    assert_eq!(bits(&skipped), bits(&controlled));
+}
+
 /// The default `min_image_gain` and `min_fit_gain` against the scenes they were measured on
 /// (`docs/bench/README.md`, "Regressing to the baseline" and "Within a technique"):
 /// veach-mis, whose controlled vertices hold almost none of the image's variance (image gain

@@ -220,7 +220,8 @@ pub struct EstimatorReport {
     /// Extra EXR layers: `cv_term` (per-pixel CV correction in the image: the render phase's
     /// mean of controlled − plain times its weight, so `beauty − cv_term` is the same
     /// combination of the plain estimates from the same samples) and `cell` (cell id of
-    /// the first vertex, −1 for none). Not serialised.
+    /// the camera hit of the pixel's first render-phase sample that found one, −1 for
+    /// none). Not serialised.
     #[serde(skip)]
     pub layers: Vec<FilmLayer>,
 }
@@ -1067,8 +1068,13 @@ struct Policy<'c, 't> {
     surrogate: Option<f64>,
     /// Σ over vertices of (controlled − plain) contributions.
     cv_delta: Vec3,
-    /// Cell of the first vertex.
+    /// Cell of the first vertex, found only where it is read (`keeps_first_cell`) or
+    /// controlled.
     first_cell: Option<u32>,
+    /// Whether the sample's first cell is kept: in the render phase until a sample of the
+    /// pixel finds one (its `cell` layer). Below `min_depth` the camera hit's cell is not
+    /// looked up for any other sample.
+    keeps_first_cell: bool,
     /// Cell of the current vertex when it is controlled (set by `controls`).
     cell: Option<u32>,
     /// The render phase's coefficient slot of `cell` (set by `controls`: looked up once
@@ -1306,7 +1312,7 @@ impl VertexObserver for Policy<'_, '_> {
     #[inline]
     fn controls(&mut self, depth: u32, p: Vec3, ns: Vec3, glossy: bool) -> bool {
         let min_depth = self.ctx.min_depth;
-        let cell = if depth == 0 || depth >= min_depth {
+        let cell = if depth >= min_depth || (depth == 0 && self.keeps_first_cell) {
             self.cell_of(depth == 0 && glossy, depth, p, ns)
         } else {
             None
@@ -2534,6 +2540,7 @@ fn run_tile(
                     surrogate: sur,
                     cv_delta: Vec3::ZERO,
                     first_cell: None,
+                    keeps_first_cell: kind == PhaseKind::Apply && cell_id[i] < 0.0,
                     cell: None,
                     slot: None,
                     half: (kind == PhaseKind::Train && ctx.halves).then_some(s & 1),
@@ -2555,7 +2562,9 @@ fn run_tile(
                     px.add(Vec3::ZERO, sample.albedo, sample.normal);
                     rejected += 1;
                 }
+                // The `cell` layer: the first cell a sample of the pixel found.
                 if kind == PhaseKind::Apply
+                    && cell_id[i] < 0.0
                     && let Some(c) = pol.first_cell
                 {
                     cell_id[i] = c as f32;
@@ -3258,6 +3267,7 @@ mod tests {
                 surrogate: None,
                 cv_delta: Vec3::ZERO,
                 first_cell: None,
+                keeps_first_cell: false,
                 cell: Some(key),
                 slot: Some(0),
                 half: None,
