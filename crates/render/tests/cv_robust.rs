@@ -11,6 +11,19 @@ use render::integrator::optimal_mis::OptimalMisOptions;
 use render::integrator::per_light_cv::PerLightCvOptions;
 use render::{Estimator, RenderOptions};
 
+/// A small `cms` job (8 training spp) starting at `min_depth` whose fits are not switched
+/// off by their predicted gains.
+fn fits_kept(min_depth: Option<u32>) -> CmsOptions {
+    CmsOptions {
+        training_spp: 8,
+        min_samples: 4,
+        min_depth,
+        min_image_gain: None,
+        min_fit_gain: None,
+        ..CmsOptions::default()
+    }
+}
+
 fn estimators() -> Vec<Estimator> {
     vec![
         // Its gathers' BSDF samples go through the emitters-only BVH (`RenderScene::emitters`).
@@ -338,13 +351,8 @@ fn the_cell_layer_is_the_first_samples_cell_whatever_the_min_depth() {
     let s = load("scenes/cornell-box/scene.json", 24, 16);
     let run = |min_depth| {
         let e = Estimator::Cms(CmsOptions {
-            training_spp: 8,
-            min_samples: 4,
-            min_depth,
-            min_image_gain: None,
-            min_fit_gain: None,
             min_held_out_share: Some(0.0),
-            ..CmsOptions::default()
+            ..fits_kept(min_depth)
         });
         let (_, r) = render(&s, e, 24, 5, None, opts);
         assert!(r.cells_solved > 0, "{r:?}");
@@ -664,14 +672,7 @@ fn cms_at_depth_two_is_path() {
         let s = load(rel, 24, 16);
         let (p, _) = render(&s, Estimator::Path, 24, 5, Some(2), opts);
         let diff = |min_depth| {
-            let e = Estimator::Cms(CmsOptions {
-                training_spp: 8,
-                min_samples: 4,
-                min_depth,
-                min_image_gain: None,
-                min_fit_gain: None,
-                ..CmsOptions::default()
-            });
+            let e = Estimator::Cms(fits_kept(min_depth));
             let (cv, report) = render(&s, e, 24, 5, Some(2), opts);
             (worst_relative_difference(&cv, &p), report.cells_solved)
         };
