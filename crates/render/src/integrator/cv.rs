@@ -1540,10 +1540,34 @@ const PROBE_MARGIN: f64 = 0.5;
 /// cells are for, stopped (4 of 6 training tiles, and the job lost 7–8 % at equal spp:
 /// `docs/bench/README.md`); judged by the finest cells alone, thinly sampled cells stopped
 /// checkers tiles that the pooled fits keep. Both solves are of the tile's own samples, so
-/// the decision is the same on every worker and for any thread count.
+/// the decision is the same on every worker and for any thread count. Where most of the
+/// probe's light-partition samples sit in thin partitions ([`PROBE_THIN_SHARE`]) its fit
+/// gain is not judged, only its image gain.
 fn probe_stops(probe: &AccumulatorTable, policy: SolvePolicy) -> bool {
-    !probe.fits_pay_pooled_or_alone(&probe_policy(policy), 1)
+    let mut p = probe_policy(policy);
+    let halves = policy.halves != CellHalves::None;
+    if probe
+        .thin_partition_share(policy.min_group_samples, halves)
+        .is_some_and(|s| s >= PROBE_THIN_SHARE)
+    {
+        p.min_fit_gain = f64::NEG_INFINITY;
+    }
+    !probe.fits_pay_pooled_or_alone(&p, 1)
 }
+
+/// The share of a probe's light-partition samples in thin partitions
+/// ([`AccumulatorTable::thin_partition_share`], below `min_group_samples`) from which the
+/// probe no longer judges its fit gain, only its image gain. Its 2-spp fits are then
+/// grouped far more coarsely than the job's 16-spp fits will be, and their gain says little
+/// about them: every `many-lights` tile (64 lamps) has a share of 1.0 and a probe fit gain of
+/// 0.016–0.15, below the probe's 0.1 at 2–4 of its 4 tiles over seeds 1–6. Stopped, the job
+/// lost its fits at 2 of 6 seeds (1.00× at equal spp where they give 1.25–1.28×), and kept
+/// them with a quarter of their data at the rest (1.11× at seed 2). Measured shares of the
+/// scenes the probe stops or keeps on its fit gain: envmap 0.04–0.31 (and 1.0 in a tile
+/// whose image gain is 0), cornell-box 0.05–0.11, the shared spheres 0.09–0.16, the shared
+/// Cornell box 0.003, colour-lamp 0.50–0.53, veach-mis 0.33–0.68; the shared `manylights-4`
+/// 0.91 and `many-lights-256` 1.0 (seed 1, d5).
+const PROBE_THIN_SHARE: f64 = 0.75;
 
 /// Training samples per pixel a training tile records before it checks its own table
 /// against the job's `min_image_gain` / `min_fit_gain` (the table-wide switch of
