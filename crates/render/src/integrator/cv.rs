@@ -2587,8 +2587,7 @@ fn run_tile(
                     rejected += 1;
                 }
                 // The `cell` layer: the first cell a sample of the pixel found.
-                if kind == PhaseKind::Apply
-                    && cell_id[i] < 0.0
+                if pol.keeps_first_cell
                     && let Some(c) = pol.first_cell
                 {
                     cell_id[i] = c as f32;
