@@ -3313,7 +3313,6 @@ mod tests {
                 0 => None,
                 n => Some(LightTechnique {
                     light,
-                    wi: Vec3::Z,
                     pdf_light: 0.05 + 3.0 * u(),
                     pdf_bsdf: if n == 3 { 0.0 } else { 2.0 * u() },
                     value: Vec3::new(u(), 2.0 * u(), 0.5 * u()),
@@ -3323,7 +3322,6 @@ mod tests {
             let bsdf = match (i / 4) % 5 {
                 0 => None,
                 n => Some(BsdfTechnique {
-                    wi: Vec3::Y,
                     pdf_bsdf: 0.1 + 4.0 * u(),
                     pdf_light: if n == 2 { 0.0 } else { 2.0 * u() },
                     weight: Vec3::new(u(), u(), u()),
@@ -3339,9 +3337,6 @@ mod tests {
                 }),
             };
             let r = VertexRecord {
-                depth: i % 3,
-                p: Vec3::ZERO,
-                ns: Vec3::Z,
                 throughput: Vec3::new(0.5 + u(), 1.0, 0.25 + u()),
                 light: nee,
                 nee_light: Some(light),

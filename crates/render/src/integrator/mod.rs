@@ -371,11 +371,9 @@ impl RenderScene {
 pub struct LightTechnique {
     /// Light chosen.
     pub light: u32,
-    /// World direction towards the light.
-    pub wi: Vec3,
-    /// Light-sampling pdf of `wi` (incl. selection).
+    /// Light-sampling pdf of the sampled direction (incl. selection).
     pub pdf_light: f32,
-    /// BSDF-sampling pdf of `wi`.
+    /// BSDF-sampling pdf of the sampled direction.
     pub pdf_bsdf: f32,
     /// `f·|cos θ|·Le·V` (not divided by any pdf, not MIS-weighted); zero if occluded.
     pub value: Vec3,
@@ -386,11 +384,9 @@ pub struct LightTechnique {
     pub visible: bool,
 }
 
-/// The BSDF-sampled direction at a vertex and what it found.
+/// The BSDF-sampled direction `wi` at a vertex and what it found.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct BsdfTechnique {
-    /// World direction.
-    pub wi: Vec3,
     /// BSDF-sampling pdf of `wi` (for a delta lobe: the lobe's probability).
     pub pdf_bsdf: f32,
     /// Light-sampling pdf of `wi` (incl. selection) for the emitter it hit; 0 if none.
@@ -412,15 +408,12 @@ pub struct BsdfTechnique {
     pub rr_q: f32,
 }
 
-/// Everything a CV estimator needs at one path vertex.
+/// Everything a CV estimator needs at one path vertex: the techniques' samples, their
+/// densities and values. Where the vertex is (depth, position, normal) the observer is told
+/// by [`VertexObserver::controls`]; the record holds only what the estimate reads, since
+/// `trace` writes it at every vertex an observer may control.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct VertexRecord {
-    /// Vertex index (0 = camera hit).
-    pub depth: u32,
-    /// Position.
-    pub p: Vec3,
-    /// Shading normal.
-    pub ns: Vec3,
     /// Path throughput up to (excluding) this vertex's scattering.
     pub throughput: Vec3,
     /// The NEE sample, if one was drawn (non-delta BSDF, lights present, sample valid).

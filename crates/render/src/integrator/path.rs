@@ -226,7 +226,6 @@ pub fn trace<O: VertexObserver>(
             }
             light_tech = Some(LightTechnique {
                 light: ls.light,
-                wi: ls.wi,
                 pdf_light: ls.pdf,
                 pdf_bsdf,
                 value,
@@ -236,9 +235,6 @@ pub fn trace<O: VertexObserver>(
         // What the observer gets for this vertex; the BSDF technique is filled in below (in
         // place: the record is ~160 bytes, and rebuilding it per branch cost a copy each).
         let mut vertex = VertexRecord {
-            depth,
-            p: h.p,
-            ns: h.ns,
             throughput: beta,
             light: light_tech,
             nee_light: nee_sel.map(|(l, _)| l),
@@ -270,7 +266,6 @@ pub fn trace<O: VertexObserver>(
         }
 
         let mut tech = BsdfTechnique {
-            wi,
             pdf_bsdf: bs.pdf,
             pdf_light: 0.0,
             weight: bs.weight,
