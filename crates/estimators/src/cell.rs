@@ -383,8 +383,9 @@ fn overlap_parts(v: &[f64], k: usize, c: usize) -> (&[f64], &[f64], &[f64], &[f6
     (dense, b, g, g_light)
 }
 
-/// [`overlap_parts`], mutable.
-#[inline]
+/// [`overlap_parts`], mutable. Always inlined: a training sample's update calls it with
+/// constant `k` and `c`, and called out of line it cost ≈ 12 instructions per sample.
+#[inline(always)]
 fn overlap_parts_mut(
     v: &mut [f64],
     k: usize,
