@@ -1331,6 +1331,8 @@ impl Policy<'_, '_> {
 
 impl VertexObserver for Policy<'_, '_> {
     const CONTROLS_DIRECT: bool = true;
+    /// An uncontrolled vertex is `path`'s: nothing to record or add.
+    const SEES_UNCONTROLLED: bool = false;
 
     /// A vertex is left to `path` (no policy work, none of the extra rays a CV needs) unless
     /// the policy records it (training, in a cell) or controls it (render phase, in a cell
@@ -1737,6 +1739,7 @@ impl<'a> CvJob<'a> {
                 min_depth: estimator.min_depth(),
                 controls: estimator.controls_any_vertex(settings.max_depth_u32()),
                 train_log_max: TRAIN_LOG_MAX,
+
                 min_split_gain: match estimator {
                     PhasedEstimator::OptimalMis(o) => o.min_split_gain,
                     _ => None,

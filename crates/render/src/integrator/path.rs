@@ -232,18 +232,21 @@ pub fn trace<O: VertexObserver>(
                 visible,
             });
         }
-        // What the observer gets for this vertex; the BSDF technique is filled in below (in
-        // place: the record is ~160 bytes, and rebuilding it per branch cost a copy each).
-        let mut vertex = VertexRecord {
-            throughput: beta,
+        // What the observer gets for this vertex, with the BSDF technique below: built at
+        // each report, and only where the observer reads it.
+        let throughput = beta;
+        let record = |bsdf| VertexRecord {
+            throughput,
             light: light_tech,
             nee_light: nee_sel.map(|(l, _)| l),
-            bsdf: None,
+            bsdf,
         };
 
         // ---- BSDF sampling ----
         let Some(bs) = bsdf_sample else {
-            report(observer, controls, &mut radiance, &vertex);
+            if reports::<O>(controls) {
+                report(observer, controls, &mut radiance, &record(None));
+            }
             break;
         };
         let wi = frame.to_world(bs.wi);
@@ -276,8 +279,9 @@ pub fn trace<O: VertexObserver>(
             rr_q,
         };
         if !alive && !zero_weight_trace {
-            vertex.bsdf = Some(tech);
-            report(observer, controls, &mut radiance, &vertex);
+            if reports::<O>(controls) {
+                report(observer, controls, &mut radiance, &record(Some(tech)));
+            }
             break;
         }
 
@@ -316,8 +320,9 @@ pub fn trace<O: VertexObserver>(
             };
             radiance += beta * tech.emitted * w;
         }
-        vertex.bsdf = Some(tech);
-        report(observer, controls, &mut radiance, &vertex);
+        if reports::<O>(controls) {
+            report(observer, controls, &mut radiance, &record(Some(tech)));
+        }
         if zero_weight_trace {
             break;
         }
@@ -328,6 +333,13 @@ pub fn trace<O: VertexObserver>(
     }
     out.radiance = radiance;
     out
+}
+
+/// Whether `trace` hands the vertex to the observer: every vertex it controls, and the
+/// others when it [sees them](VertexObserver::SEES_UNCONTROLLED).
+#[inline(always)]
+fn reports<O: VertexObserver>(controls: bool) -> bool {
+    controls || O::SEES_UNCONTROLLED
 }
 
 /// Hands a vertex record to the observer; a controlling observer's contribution is added.
