@@ -441,7 +441,8 @@ pub trait VertexObserver {
     /// vertex (`depth`, position `p`, shading normal `ns`, whether its BSDF has a glossy
     /// lobe: [`crate::bsdf::Bsdf::is_glossy`]). When `false`, [`path::trace`]
     /// treats the vertex exactly as `path` does (adds its MIS-weighted direct lighting
-    /// itself, traces no extra ray) and reports it with [`vertex`](Self::vertex).
+    /// itself, traces no extra ray) and reports it with [`vertex`](Self::vertex) if the
+    /// observer [sees such vertices](Self::SEES_UNCONTROLLED).
     ///
     /// [`path::trace`]: path::trace
     #[inline]
