@@ -374,23 +374,23 @@ const OTHER_CHILD: u32 = 8;
 /// `docs/bench/README.md`). With `levels` 0 the index is the plain row-major one for all.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Grid {
-    lo: Vec3,
-    scale: Vec3,
+    /// The padded bounds' low corner and the finest cells per unit length, in SIMD lanes.
+    lo: Vec3A,
+    scale: Vec3A,
     /// Finest cells per axis (`coarse << levels`).
     res: [u32; 3],
     /// Undivided cells per axis.
     coarse: [u32; 3],
     levels: u32,
     /// `res - 1` per axis (exact in `f32`: at most 2^20 cells).
-    last: Vec3,
+    last: Vec3A,
     /// `9^levels`: an undivided cell's first index is its row-major index times this.
     undivided_stride: u32,
     /// Offset of the other vertices' child in an undivided cell's indices: digit 8, then
     /// `levels − 1` zeros (0 with `levels` 0).
     other_offset: u32,
-    /// `lo`, `scale / 2^levels` (exact: a power of two) and `coarse − 1` per axis, in SIMD
-    /// lanes: the undivided cell of every deeper vertex ([`Self::undivided_cell`]).
-    lo_a: Vec3A,
+    /// `scale / 2^levels` (exact: a power of two) and `coarse − 1` per axis: the undivided
+    /// cell of every deeper vertex ([`Self::undivided_cell`]).
     coarse_scale: Vec3A,
     coarse_last: Vec3A,
     /// Row-major strides of the undivided cells, `[1, cx, cx·cy]` (exact in `f32`: at most
@@ -446,18 +446,17 @@ impl Grid {
         }
         let coarse = res;
         let res = res.map(|r| r << levels);
-        let resf = Vec3::new(res[0] as f32, res[1] as f32, res[2] as f32);
-        let scale = resf / ext;
+        let resf = Vec3A::new(res[0] as f32, res[1] as f32, res[2] as f32);
+        let scale = resf / Vec3A::from(ext);
         let coarsef = Vec3A::new(coarse[0] as f32, coarse[1] as f32, coarse[2] as f32);
         Ok(Self {
-            lo,
+            lo: lo.into(),
             scale,
             res,
             coarse,
             levels,
-            last: resf - Vec3::ONE,
-            lo_a: lo.into(),
-            coarse_scale: Vec3A::from(scale) / (1u32 << levels) as f32,
+            last: resf - Vec3A::ONE,
+            coarse_scale: scale / (1u32 << levels) as f32,
             coarse_last: coarsef - Vec3A::ONE,
             coarse_strides: Vec3A::new(1.0, coarsef.x, coarsef.x * coarsef.y),
             undivided_stride: CHILDREN.pow(levels),
@@ -495,7 +494,7 @@ impl Grid {
     /// 49 spp, `cms`).
     #[inline]
     pub fn undivided_cell(&self, p: Vec3) -> u32 {
-        let q = (Vec3A::from(p) - self.lo_a) * self.coarse_scale;
+        let q = (Vec3A::from(p) - self.lo) * self.coarse_scale;
         // NaN and +∞ to 0, as [`Self::coords`].
         let q = Vec3A::select(q.cmplt(Vec3A::INFINITY), q, Vec3A::ZERO);
         let c = q.max(Vec3A::ZERO).min(self.coarse_last).floor();
@@ -529,12 +528,12 @@ impl Grid {
     /// The finest cell coordinates of `p` (clamped to the grid).
     #[inline]
     fn coords(&self, p: Vec3) -> glam::UVec3 {
-        let q = (p - self.lo) * self.scale;
+        let q = (Vec3A::from(p) - self.lo) * self.scale;
         // NaN and +∞ go to cell 0, negatives to 0, the rest is clamped to the last cell: in
         // the float domain, lane-parallel and without branches (the cast then sees only
         // `0..=res-1`).
-        let q = Vec3::select(q.cmplt(Vec3::INFINITY), q, Vec3::ZERO);
-        q.max(Vec3::ZERO).min(self.last).as_uvec3()
+        let q = Vec3A::select(q.cmplt(Vec3A::INFINITY), q, Vec3A::ZERO);
+        q.max(Vec3A::ZERO).min(self.last).as_uvec3()
     }
 }
 
@@ -1739,7 +1738,6 @@ impl<'a> CvJob<'a> {
                 min_depth: estimator.min_depth(),
                 controls: estimator.controls_any_vertex(settings.max_depth_u32()),
                 train_log_max: TRAIN_LOG_MAX,
-
                 min_split_gain: match estimator {
                     PhasedEstimator::OptimalMis(o) => o.min_split_gain,
                     _ => None,
@@ -3495,7 +3493,7 @@ mod tests {
             2 * axis + u32::from(v < 0.0)
         }
         fn cell_oracle(g: &Grid, p: Vec3) -> u32 {
-            let q = (p - g.lo) * g.scale;
+            let q = (p - Vec3::from(g.lo)) * Vec3::from(g.scale);
             let c = |v: f32, r: u32| {
                 let v = if v < f32::INFINITY { v } else { 0.0 };
                 (v as u32).min(r - 1)
