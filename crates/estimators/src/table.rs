@@ -804,23 +804,35 @@ impl AccumulatorTable {
                 Some((k2, _)) if halves && **k2 >> 1 == k >> 1 => cells.next().map(|(_, b)| b),
                 _ => None,
             };
-            let Some(b) = other else {
-                a.partitions().for_each(|p| count(p.count));
-                continue;
-            };
-            let (mut pa, mut pb) = (a.partitions().peekable(), b.partitions().peekable());
+            let ids = |p: crate::cell::PartitionMoments<'_>| (p.id, p.count);
+            let mut pa = a.partitions().map(ids).peekable();
+            let mut pb = other
+                .into_iter()
+                .flat_map(|b| b.partitions())
+                .map(ids)
+                .peekable();
             loop {
-                match (pa.peek(), pb.peek()) {
-                    (Some(x), Some(y)) if x.id == y.id => {
-                        count(x.count + y.count);
+                let n = match (pa.peek().copied(), pb.peek().copied()) {
+                    (None, None) => break,
+                    (Some((i, x)), Some((j, y))) if i == j => {
                         pa.next();
                         pb.next();
+                        x + y
                     }
-                    (Some(x), Some(y)) if x.id < y.id => count(pa.next().map_or(0, |p| p.count)),
-                    (Some(_), Some(_)) | (None, Some(_)) => count(pb.next().map_or(0, |p| p.count)),
-                    (Some(_), None) => count(pa.next().map_or(0, |p| p.count)),
-                    (None, None) => break,
-                }
+                    (Some((i, x)), Some((j, _))) if i < j => {
+                        pa.next();
+                        x
+                    }
+                    (Some((_, x)), None) => {
+                        pa.next();
+                        x
+                    }
+                    (_, Some((_, y))) => {
+                        pb.next();
+                        y
+                    }
+                };
+                count(n);
             }
         }
         (total > 0).then(|| thin as f64 / total as f64)
