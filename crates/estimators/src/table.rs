@@ -240,65 +240,97 @@ pub fn solve_table(
 type Halves<'a, A = CellAccumulator> = (Option<&'a A>, Option<&'a A>);
 
 /// Pairs the halves of a table recorded with halves (key `2 · cell + half`): each cell's
-/// merged accumulator and its two halves.
-fn pair_halves(t: &BTreeMap<u64, CellAccumulator>) -> BTreeMap<u64, (CellAccumulator, Halves<'_>)> {
-    pair_halves_by(t, |a, b| a.merge(b).is_ok())
+/// merged accumulator and its two halves, merged on up to `threads` threads.
+fn pair_halves(
+    t: &BTreeMap<u64, CellAccumulator>,
+    threads: usize,
+) -> BTreeMap<u64, (CellAccumulator, Halves<'_>)> {
+    pair_halves_by(t, threads, |a, b| a.merge(b).is_ok())
 }
 
 /// [`pair_halves`] for any accumulator that `merge`s (`false`: the layouts differ, and the
-/// odd half is dropped from the cell, never merged wrongly).
-fn pair_halves_by<A: Clone>(
+/// odd half is dropped from the cell, never merged wrongly). Each cell's sums are its even
+/// half's plus its odd half's, whatever `threads` (cells are independent).
+fn pair_halves_by<A: Clone + Send + Sync>(
     t: &BTreeMap<u64, A>,
-    merge: impl Fn(&mut A, &A) -> bool,
+    threads: usize,
+    merge: impl Fn(&mut A, &A) -> bool + Sync,
 ) -> BTreeMap<u64, (A, Halves<'_, A>)> {
-    let mut out: BTreeMap<u64, (A, Halves<'_, A>)> = BTreeMap::new();
+    // Each cell's first half (its sums' start) and both halves; keys come in order, so the
+    // even half (if any) is in before the odd one.
+    let mut cells: BTreeMap<u64, (&A, Halves<'_, A>)> = BTreeMap::new();
     for (&key, acc) in t {
-        let (cell, odd) = (key / 2, key % 2 == 1);
-        match out.get_mut(&cell) {
-            // Keys come in order: the even half (if any) is in already.
-            Some((merged, halves)) => {
-                // Both halves are of one job: their layouts agree (else the odd half is
-                // dropped from the fit, never merged wrongly).
-                if merge(merged, acc) {
-                    halves.1 = Some(acc);
-                }
-            }
+        match cells.get_mut(&(key / 2)) {
+            Some((_, halves)) => halves.1 = Some(acc),
             None => {
-                let halves = if odd {
+                let halves = if key % 2 == 1 {
                     (None, Some(acc))
                 } else {
                     (Some(acc), None)
                 };
-                out.insert(cell, (acc.clone(), halves));
+                cells.insert(key / 2, (acc, halves));
             }
         }
     }
-    out
+    let merged = par_map(&cells, threads, |_, &(first, (even, odd))| {
+        let mut m = first.clone();
+        let odd = match (even, odd) {
+            // Both halves are of one job: their layouts agree (else the odd half is
+            // dropped from the fit, never merged wrongly).
+            (Some(_), Some(o)) => merge(&mut m, o).then_some(o),
+            (_, o) => o,
+        };
+        (m, (even, odd))
+    });
+    cells.into_keys().zip(merged).collect()
 }
 
-/// `f` of every entry of `cells`, in key order, on up to `threads` threads (contiguous
-/// chunks: the result does not depend on `threads`).
+/// `f` of every entry of `cells`, in key order, on up to `threads` threads. The threads take
+/// runs of [`PAR_MAP_RUN`] entries in turn until none is left (cells differ in cost: a fixed
+/// split left one thread idle while the other solved its heavier half), and each result lands
+/// at its entry's place: the result does not depend on `threads`.
 fn par_map<T: Sync, R: Send>(
     cells: &BTreeMap<u64, T>,
     threads: usize,
     f: impl Fn(u64, &T) -> R + Sync,
 ) -> Vec<R> {
     let items: Vec<(u64, &T)> = cells.iter().map(|(k, v)| (*k, v)).collect();
-    let chunk = items.len().div_ceil(threads.max(1)).max(1);
-    std::thread::scope(|s| {
-        let handles: Vec<_> = items
-            .chunks(chunk)
-            .map(|c| {
-                let f = &f;
-                s.spawn(move || c.iter().map(|(k, v)| f(*k, v)).collect::<Vec<_>>())
+    let threads = threads.clamp(1, items.len().div_ceil(PAR_MAP_RUN).max(1));
+    if threads == 1 {
+        return items.iter().map(|&(k, v)| f(k, v)).collect();
+    }
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let runs: Vec<Vec<(usize, Vec<R>)>> = std::thread::scope(|s| {
+        let handles: Vec<_> = (0..threads)
+            .map(|_| {
+                let (f, next, items) = (&f, &next, &items);
+                s.spawn(move || {
+                    let mut done = Vec::new();
+                    loop {
+                        let start =
+                            next.fetch_add(PAR_MAP_RUN, std::sync::atomic::Ordering::Relaxed);
+                        if start >= items.len() {
+                            break;
+                        }
+                        let run = &items[start..(start + PAR_MAP_RUN).min(items.len())];
+                        done.push((start, run.iter().map(|&(k, v)| f(k, v)).collect()));
+                    }
+                    done
+                })
             })
             .collect();
         handles
             .into_iter()
-            .flat_map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))
+            .map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))
             .collect()
-    })
+    });
+    let mut runs: Vec<(usize, Vec<R>)> = runs.into_iter().flatten().collect();
+    runs.sort_unstable_by_key(|&(start, _)| start);
+    runs.into_iter().flat_map(|(_, r)| r).collect()
 }
+
+/// Entries a [`par_map`] thread takes at a time.
+const PAR_MAP_RUN: usize = 32;
 
 /// The cells' undivided ancestors ([`SolvePolicy::levels`] up): each one's sums (its
 /// members added in key order) and its member cells' keys.
@@ -467,13 +499,11 @@ fn solve_hierarchy(
             if depth == 0 {
                 out.rejected += node.merged.rejected();
                 // A kept fit judged on the cell's halves: what it removes held out.
-                if let Decision::Fit(f) = &decision
-                    && let Some(h) = f.held_out(node)
-                {
+                if let Decision::Fit(_, Some(h)) = decision {
                     held_out.insert(k, h);
                 }
                 let co = match decision {
-                    Decision::Fit(f) => f.full.clone(),
+                    Decision::Fit(f, _) => f.full.clone(),
                     Decision::Fallback(co) => co.as_ref().clone(),
                 };
                 out.coefficients.insert(k, co);
@@ -489,7 +519,7 @@ fn solve_hierarchy(
 /// A node's decision ([`solve_hierarchy`]): `own`, its parent's `up`, or neither.
 fn decide(own: Fit, up: Option<&Decision>, node: &Node<'_>) -> Decision {
     let inherited = match up {
-        Some(Decision::Fit(f)) => Some(f),
+        Some(Decision::Fit(f, _)) => Some(f),
         _ => None,
     };
     let own_score = own.held_out(node);
@@ -513,8 +543,8 @@ fn decide(own: Fit, up: Option<&Decision>, node: &Node<'_>) -> Decision {
         Keep::Neither
     };
     match (choice, inherited) {
-        (Keep::Own, _) => Decision::Fit(std::sync::Arc::new(own)),
-        (Keep::Inherited, Some(f)) => Decision::Fit(f.clone()),
+        (Keep::Own, _) => Decision::Fit(std::sync::Arc::new(own), own_score),
+        (Keep::Inherited, Some(f)) => Decision::Fit(f.clone(), inherited_score),
         _ if own.full.is_fallback() => Decision::Fallback(std::sync::Arc::new(own.full)),
         _ => Decision::Fallback(std::sync::Arc::new(CellCoefficients::fallen_back(
             own.full.layout(),
@@ -525,11 +555,13 @@ fn decide(own: Fit, up: Option<&Decision>, node: &Node<'_>) -> Decision {
     }
 }
 
-/// What a node of the hierarchy keeps: a fit (its own or an ancestor's), or the plain
+/// What a node of the hierarchy keeps: a fit (its own or an ancestor's) with what it removes
+/// from the node held out ([`Fit::held_out`] on the node, scored when the fit was chosen: an
+/// only child has its parent's sums, so the score is its parent's too), or the plain
 /// estimator with the reason ([`solve_hierarchy`]).
 #[derive(Clone)]
 enum Decision {
-    Fit(std::sync::Arc<Fit>),
+    Fit(std::sync::Arc<Fit>, Option<f64>),
     Fallback(std::sync::Arc<CellCoefficients>),
 }
 
@@ -954,7 +986,7 @@ impl AccumulatorTable {
         }
         let (mut out, sums, image) = match self {
             Self::Moments(t, image) if policy.halves == CellHalves::CrossFitted => {
-                let cells = pair_halves(t);
+                let cells = pair_halves(t, threads);
                 let (mut out, held_out) = solve_hierarchy(&cells, policy, threads);
                 let merged: BTreeMap<u64, CellAccumulator> =
                     cells.into_iter().map(|(k, (a, _))| (k, a)).collect();
@@ -965,8 +997,12 @@ impl AccumulatorTable {
             Self::Moments(t, image) if policy.halves == CellHalves::Merged => {
                 // Without a held-out check to choose a level by, the cells of a hierarchy
                 // take their undivided ancestor's fit.
-                let (merged, members) =
-                    undivided(pair_halves(t).into_iter().map(|(k, (a, _))| (k, a)), policy);
+                let (merged, members) = undivided(
+                    pair_halves(t, threads)
+                        .into_iter()
+                        .map(|(k, (a, _))| (k, a)),
+                    policy,
+                );
                 let coarse = par(&merged, threads, |a| (solve(a, policy), a.rejected()));
                 let sums = FitSums::of(&merged, &coarse.coefficients, &BTreeMap::new());
                 let mut out = SolvedTable {
@@ -992,7 +1028,7 @@ impl AccumulatorTable {
                     if policy.halves == CellHalves::None {
                         (Cow::Borrowed(t), BTreeMap::new())
                     } else {
-                        let (m, h) = pair_halves_by(t, |a, b| a.merge(b).is_ok())
+                        let (m, h) = pair_halves_by(t, threads, |a, b| a.merge(b).is_ok())
                             .into_iter()
                             .map(|(k, (a, halves))| ((k, a), (k, halves)))
                             .unzip();
@@ -1098,6 +1134,25 @@ mod tests {
         let cb = encode_table(&coeffs);
         let back: BTreeMap<u64, CellCoefficients> = decode_table(&cb).unwrap();
         assert_eq!(encode_table(&back), cb);
+    }
+
+    #[test]
+    fn par_map_gives_every_entry_its_result_in_key_order_for_any_thread_count() {
+        // More entries than runs of every thread count, and fewer than one run.
+        for n in [
+            0u64,
+            1,
+            5,
+            PAR_MAP_RUN as u64 + 1,
+            10 * PAR_MAP_RUN as u64 + 7,
+        ] {
+            let cells: BTreeMap<u64, u64> = (0..n).map(|k| (3 * k + 1, k * k)).collect();
+            let want: Vec<(u64, u64)> = cells.iter().map(|(&k, &v)| (k, v + k)).collect();
+            for threads in [0, 1, 2, 3, 8] {
+                let got = par_map(&cells, threads, |k, &v| (k, v + k));
+                assert_eq!(got, want, "{n} entries, {threads} threads");
+            }
+        }
     }
 
     #[test]
